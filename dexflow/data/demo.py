@@ -25,14 +25,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import trimesh
 from scipy.spatial.transform import Rotation, Slerp
 
 from dexflow.data.grasps import GRASP_TYPES, Grasp, synthesize_grasp
 from dexflow.data.ycb_standins import STANDINS, build_standin
 from dexflow.human.model import HandShape, finger_capsules, forward_keypoints
-from dexflow.io.atomic import atomic_path, save_json
+from dexflow.io.atomic import save_json
 from dexflow.io.sequence import Sequence, save_sequence
+from dexflow.objects.mesh import write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
 
 __all__ = ["DemoConfig", "generate_demo", "generate_object"]
@@ -290,8 +290,7 @@ def generate_object(name: str, cfg: DemoConfig, out_dir: str | Path) -> list[dic
     index = sorted(STANDINS).index(name)
     seeds = np.random.SeedSequence([cfg.seed, index]).spawn(cfg.sequences_per_object + 1)
     mesh = build_standin(name, seed=int(seeds[0].generate_state(1)[0]))
-    with atomic_path(out_dir / "meshes" / f"{name}.obj") as tmp:
-        tmp.write_text(trimesh.exchange.obj.export_obj(mesh, include_normals=False))
+    write_obj(out_dir / "meshes" / f"{name}.obj", mesh)
     sdf = SignedDistanceGrid.from_mesh(mesh, spacing=cfg.sdf_spacing_m, padding=0.03)
     grasp_types = [g for g in STANDINS[name].grasps if g in GRASP_TYPES]
     entries = []

@@ -1,0 +1,195 @@
+"""Stage scale_align (paper §III-A): scale human data to the robot hand, precompute objects.
+
+The whole scene (keypoints, object poses and meshes) is scaled by the hand's factor ``s`` about
+the world origin: a similarity transform, so every contact and clearance of the human data keeps
+its shape, only ``s`` times larger. Then each human fingertip is moved along its distal bone by
+the hand's fingertip offset (metres, after scaling).
+
+Per object, computed once whatever the number of sequences using it, at the scaled size:
+
+- ``mesh.obj``: the scaled mesh;
+- ``sdf.npz``: signed distance grid (winding-number sign, correct for meshes with holes);
+- ``surface.npz``: ``points (N, 3)`` and outward ``normals (N, 3)`` sampled on the surface;
+- ``convex.obj``: CoACD convex decomposition, one ``o`` group per part, for simulation;
+- ``meta.json``: source mesh, scale, bounds, watertightness, part count.
+
+Output layout below the stage directory: ``sequences/<name>.npz`` (canonical format, its
+``obj_mesh`` pointing at ``objects/<key>/mesh.obj``, plus ``scale``), ``objects/<key>/...`` and
+``summary.json`` listing every sequence and object with its status.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import shutil
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from dexflow.config import PipelineParams
+from dexflow.human.keypoints import FINGER_KEYPOINTS
+from dexflow.io.atomic import save_json, save_npz
+from dexflow.io.sequence import Sequence, load_sequence, save_sequence
+from dexflow.objects.convex import convex_decomposition, write_convex_obj
+from dexflow.objects.mesh import load_mesh, write_obj
+from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.objects.surface import sample_surface
+from dexflow.parallel import map_items
+
+__all__ = ["ObjectJob", "align_sequence", "prepare_object", "run_scale_align", "scale_sequence"]
+
+log = logging.getLogger(__name__)
+
+
+def scale_sequence(seq: Sequence, scale: float, fingertip_offsets: dict[str, float]) -> Sequence:
+    """Scale a sequence about the world origin and apply fingertip offsets.
+
+    Args:
+        seq: Sequence in metres.
+        scale: Human-to-robot size factor.
+        fingertip_offsets: Per finger name, metres added along the distal bone (DIP -> tip).
+
+    Returns:
+        A new sequence; ``obj_pose`` translations are scaled, rotations kept (the mesh itself
+        must be scaled by the same factor). NaN frames stay NaN.
+    """
+    kp = np.asarray(seq.keypoints, dtype=np.float64) * scale
+    for finger, offset in fingertip_offsets.items():
+        if offset == 0.0:
+            continue
+        *_, dip, tip = FINGER_KEYPOINTS[finger]
+        bone = kp[:, tip] - kp[:, dip]
+        kp[:, tip] += offset * bone / np.linalg.norm(bone, axis=-1, keepdims=True)
+    pose = np.array(seq.obj_pose, dtype=np.float64)
+    pose[:, :3, 3] *= scale
+    extras = {k: v for k, v in seq.extras.items()}
+    if "gt_keypoints" in extras:
+        extras["gt_keypoints"] = np.asarray(extras["gt_keypoints"]) * scale
+    extras["scale"] = np.array(float(scale))
+    return replace(seq, keypoints=kp, obj_pose=pose, extras=extras)
+
+
+def _object_key(mesh_rel: str) -> str:
+    stem = Path(mesh_rel).stem
+    digest = hashlib.sha1(mesh_rel.encode()).hexdigest()[:8]
+    return f"{stem}-{digest}"
+
+
+@dataclass(frozen=True)
+class ObjectJob:
+    """One object to precompute: its mesh (relative to the data root) and output key."""
+
+    mesh_rel: str
+    key: str
+
+
+def prepare_object(job: ObjectJob, in_root: Path, out_root: Path, params: PipelineParams) -> dict:
+    """Scale one object mesh and write its precomputation to ``out_root/objects/<key>/``."""
+    cfg = params.scale_align
+    scale = params.hand.scale
+    mesh = load_mesh(in_root / job.mesh_rel)
+    mesh.apply_scale(scale)
+    out = out_root / "objects" / job.key
+    write_obj(out / "mesh.obj", mesh)
+    sdf = SignedDistanceGrid.from_mesh(mesh, spacing=cfg.sdf_spacing_m, padding=cfg.sdf_padding_m)
+    sdf.save(out / "sdf.npz")
+    points, normals = sample_surface(mesh, cfg.surface_samples, sdf, seed=params.seed)
+    save_npz(out / "surface.npz", {"points": points, "normals": normals})
+    c = cfg.convex
+    parts = convex_decomposition(
+        mesh,
+        threshold=c.threshold,
+        max_hulls=c.max_hulls,
+        preprocess_resolution=c.preprocess_resolution,
+        mcts_iterations=c.mcts_iterations,
+        mcts_max_depth=c.mcts_max_depth,
+        mcts_nodes=c.mcts_nodes,
+        seed=params.seed,
+    )
+    write_convex_obj(out / "convex.obj", parts)
+    meta = {
+        "source_mesh": job.mesh_rel,
+        "scale": scale,
+        "faces": len(mesh.faces),
+        "watertight": bool(mesh.is_watertight),
+        "bounds_m": np.round(mesh.bounds, 6).tolist(),
+        "convex_parts": len(parts),
+        "sdf_shape": list(sdf.values.shape),
+        "sdf_spacing_m": sdf.spacing,
+    }
+    save_json(out / "meta.json", meta)
+    return meta
+
+
+def align_sequence(path: Path, in_root: Path, out_root: Path, params: PipelineParams, key: str) -> dict:
+    """Scale one sequence file and write it below ``out_root/sequences``."""
+    seq = load_sequence(path, data_root=in_root)
+    aligned = scale_sequence(seq, params.hand.scale, params.hand.fingertip_offsets)
+    aligned = replace(aligned, obj_mesh=f"objects/{key}/mesh.obj")
+    save_sequence(out_root / "sequences" / path.name, aligned, data_root=out_root)
+    return {"frames": aligned.num_frames, "object": key}
+
+
+def _mesh_of(path: Path) -> str:
+    """The ``obj_mesh`` field of a sequence file, read without validating the rest."""
+    with np.load(path, allow_pickle=False) as data:
+        return str(data["obj_mesh"])
+
+
+def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str | Path) -> dict:
+    """Run the stage over every ``in_root/sequences/*.npz``; never stops at one bad file.
+
+    Returns:
+        The summary, also written to ``out_root/summary.json``.
+    """
+    in_root, out_root = Path(in_root), Path(out_root)
+    files = sorted((in_root / "sequences").glob("*.npz"))
+    if not files:
+        raise FileNotFoundError(f"{in_root / 'sequences'}: no *.npz sequence files")
+    if out_root.exists():
+        shutil.rmtree(out_root)
+    out_root.mkdir(parents=True)
+
+    mesh_of: dict[str, str | None] = {}
+    errors: dict[str, str] = {}
+    for path in files:
+        try:
+            mesh_of[path.stem] = _mesh_of(path)
+        except Exception as exc:  # reported per sequence below
+            errors[path.stem] = f"cannot read obj_mesh ({type(exc).__name__}: {exc})"
+    jobs = sorted({ObjectJob(m, _object_key(m)) for m in mesh_of.values()}, key=lambda j: j.key)
+    n_jobs = params.run.jobs
+    object_results = map_items(
+        lambda job: prepare_object(job, in_root, out_root, params), jobs, n_jobs, "objects"
+    )
+    objects = {r.item.key: r for r in object_results}
+
+    def run_one(path: Path) -> dict:
+        obj = objects[_object_key(mesh_of[path.stem])]
+        if not obj.ok:
+            raise RuntimeError(f"object {obj.item.mesh_rel} failed: {obj.error}")
+        return align_sequence(path, in_root, out_root, params, obj.item.key)
+
+    todo = [p for p in files if p.stem not in errors]
+    seq_results = map_items(run_one, todo, n_jobs, "sequences")
+    sequences = {stem: {"status": "failed", "error": e} for stem, e in errors.items()}
+    for r in seq_results:
+        sequences[r.item.stem] = {"status": "ok", **r.value} if r.ok else {"status": "failed", "error": r.error}
+    summary = {
+        "stage": "scale_align",
+        "hand": params.hand.name,
+        "scale": params.hand.scale,
+        "num_sequences": len(files),
+        "num_ok": sum(s["status"] == "ok" for s in sequences.values()),
+        "num_failed": sum(s["status"] != "ok" for s in sequences.values()),
+        "num_frames": int(sum(s.get("frames", 0) for s in sequences.values())),
+        "sequences": dict(sorted(sequences.items())),
+        "objects": {
+            k: ({"status": "ok", **r.value} if r.ok else {"status": "failed", "error": r.error})
+            for k, r in sorted(objects.items())
+        },
+    }
+    save_json(out_root / "summary.json", summary)
+    return summary

@@ -1,0 +1,195 @@
+"""Pipeline parameters: dataclass schemas, composition of ``conf/`` into ``params.yaml``, loading.
+
+``conf/`` (Hydra) is the source of truth. :func:`compose_params` writes ``params.yaml`` with DVC's
+own Hydra composition (``dvc.utils.hydra.compose_and_dump``), so the file is byte-identical to
+what ``dvc exp run`` writes. Stages call :func:`load_params`, which validates every section
+against the schemas below and raises :class:`ConfigError` naming the key that is wrong.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from dexflow.data.demo import DemoConfig
+from dexflow.errors import ConfigError
+from dexflow.human.keypoints import FINGERS
+
+__all__ = [
+    "ConvexParams",
+    "DataParams",
+    "HandParams",
+    "PipelineParams",
+    "RunParams",
+    "ScaleAlignParams",
+    "compose_params",
+    "load_params",
+    "project_root",
+]
+
+
+def _require(condition: bool, key: str, expected: str, found: Any) -> None:
+    if not condition:
+        raise ConfigError(f"{key}: expected {expected}, found {found!r}")
+
+
+@dataclass
+class HandParams:
+    """The robot hand (``hand`` in params.yaml; one file per hand in ``conf/hand/``)."""
+
+    name: str = "shadow"
+    scale: float = 1.0
+    fingertip_offsets: dict[str, float] = field(default_factory=lambda: dict.fromkeys(FINGERS, 0.0))
+
+    def __post_init__(self) -> None:
+        _require(self.scale > 0, "hand.scale", "a factor > 0", self.scale)
+        unknown = sorted(set(self.fingertip_offsets) - set(FINGERS))
+        _require(not unknown, "hand.fingertip_offsets", f"finger names among {list(FINGERS)}", unknown)
+
+
+@dataclass
+class DataParams:
+    """Input sequences (``data``): a directory in the canonical format, or the generated demo."""
+
+    name: str = "demo"
+    root: str = "data/demo"
+
+    def __post_init__(self) -> None:
+        _require(bool(self.root), "data.root", "a directory", self.root)
+
+
+def _validate_demo(d: DemoConfig) -> None:
+    _require(d.fps > 0, "demo.fps", "> 0", d.fps)
+    _require(2 <= d.min_frames <= d.max_frames, "demo.min_frames/max_frames",
+             "2 <= min_frames <= max_frames", (d.min_frames, d.max_frames))
+    _require(d.sequences_per_object >= 1, "demo.sequences_per_object", ">= 1",
+             d.sequences_per_object)
+    _require(0 <= d.inside_fraction + d.hover_fraction <= 1, "demo.inside_fraction + hover_fraction",
+             "within [0, 1]", d.inside_fraction + d.hover_fraction)
+
+
+@dataclass
+class ConvexParams:
+    """Convex decomposition of objects for simulation (CoACD)."""
+
+    threshold: float = 0.1
+    max_hulls: int = 16
+    preprocess_resolution: int = 30
+    mcts_iterations: int = 60
+    mcts_max_depth: int = 2
+    mcts_nodes: int = 10
+
+    def __post_init__(self) -> None:
+        _require(0 < self.threshold <= 1, "scale_align.convex.threshold", "within (0, 1]",
+                 self.threshold)
+
+
+@dataclass
+class ScaleAlignParams:
+    """Stage ``scale_align`` (``scale_align``)."""
+
+    sdf_spacing_m: float = 0.002
+    sdf_padding_m: float = 0.03
+    surface_samples: int = 4096
+    convex: ConvexParams = field(default_factory=ConvexParams)
+
+    def __post_init__(self) -> None:
+        _require(0 < self.sdf_spacing_m <= 0.02, "scale_align.sdf_spacing_m",
+                 "a grid spacing in (0, 0.02] metres", self.sdf_spacing_m)
+        _require(self.sdf_padding_m >= 0, "scale_align.sdf_padding_m", ">= 0", self.sdf_padding_m)
+        _require(self.surface_samples >= 16, "scale_align.surface_samples", ">= 16",
+                 self.surface_samples)
+
+
+@dataclass
+class RunParams:
+    """How stages map over sequences (``run``)."""
+
+    backend: str = "local"
+    n_jobs: int = -1
+
+    def __post_init__(self) -> None:
+        _require(self.backend in ("sequential", "local"), "run.backend",
+                 "'sequential' or 'local'", self.backend)
+        _require(self.n_jobs == -1 or self.n_jobs >= 1, "run.n_jobs", "-1 or >= 1", self.n_jobs)
+
+    @property
+    def jobs(self) -> int:
+        return 1 if self.backend == "sequential" else self.n_jobs
+
+
+@dataclass
+class PipelineParams:
+    """Everything in params.yaml."""
+
+    seed: int = 0
+    hand: HandParams = field(default_factory=HandParams)
+    data: DataParams = field(default_factory=DataParams)
+    demo: DemoConfig = field(default_factory=DemoConfig)
+    scale_align: ScaleAlignParams = field(default_factory=ScaleAlignParams)
+    run: RunParams = field(default_factory=RunParams)
+
+
+def project_root() -> Path:
+    """The directory holding ``conf/`` and ``params.yaml`` (the current one, or a parent)."""
+    here = Path.cwd().resolve()
+    for candidate in (here, *here.parents):
+        if (candidate / "conf" / "config.yaml").is_file():
+            return candidate
+    raise ConfigError(f"no conf/config.yaml in {here} or any parent: run dexflow from the project")
+
+
+def compose_params(
+    overrides: list[str] | None = None,
+    output: str | Path | None = None,
+    config_dir: str | Path | None = None,
+) -> Path:
+    """Compose ``conf/`` with Hydra overrides and write it as DVC's Hydra integration would.
+
+    Args:
+        overrides: Hydra overrides, e.g. ``["hand=allegro", "scale_align.sdf_spacing_m=0.003"]``.
+        output: File to write; ``params.yaml`` of the project by default.
+        config_dir: The ``conf`` directory; the project's by default.
+
+    Returns:
+        The path written.
+    """
+    from dvc.utils.hydra import compose_and_dump
+    from hydra.core.global_hydra import GlobalHydra
+
+    root = project_root() if config_dir is None else Path(config_dir).resolve().parent
+    config_dir = Path(config_dir or root / "conf").resolve()
+    output = Path(output or root / "params.yaml")
+    GlobalHydra.instance().clear()
+    try:
+        compose_and_dump(output, str(config_dir), None, "config", str(root), list(overrides or []))
+    except OmegaConfBaseException as exc:
+        raise ConfigError(f"composing {config_dir}: {exc}") from exc
+    finally:
+        GlobalHydra.instance().clear()
+    load_params(output)  # fail now, not in a stage, if the composition breaks a schema
+    return output
+
+
+def load_params(path: str | Path = "params.yaml") -> PipelineParams:
+    """Read and validate params.yaml.
+
+    Raises:
+        ConfigError: the file is missing, a key is unknown, or a value has the wrong type or range.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such file; run `dexflow params` to compose it from conf/")
+    try:
+        raw = OmegaConf.load(path)
+        merged = OmegaConf.merge(OmegaConf.structured(PipelineParams), raw)
+        params = OmegaConf.to_object(merged)
+    except OmegaConfBaseException as exc:
+        raise ConfigError(f"{path}: {exc}".strip()) from exc
+    assert isinstance(params, PipelineParams)
+    _validate_demo(params.demo)
+    return params
