@@ -1,0 +1,40 @@
+"""Shared fixtures: small, valid sequences and meshes made on the fly (no downloads)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from dexflow.human.model import forward_keypoints
+from dexflow.io.sequence import Sequence
+
+
+def make_sequence(num_frames: int = 10, obj_mesh: str = "meshes/box.obj") -> Sequence:
+    """A right hand closing slowly next to a box that slides along x."""
+    angles = np.linspace(0.0, 0.6, num_frames)[:, None] * np.ones(20)
+    wrist = np.repeat(np.eye(4)[None], num_frames, axis=0)
+    wrist[:, :3, 3] = [0.0, 0.0, 0.1]
+    pose = np.repeat(np.eye(4)[None], num_frames, axis=0)
+    pose[:, 0, 3] = np.linspace(0.0, 0.05, num_frames)
+    return Sequence(
+        keypoints=forward_keypoints(angles, wrist),
+        obj_pose=pose,
+        obj_mesh=obj_mesh,
+        obj_name="box",
+        fps=30.0,
+        source="test",
+    )
+
+
+@pytest.fixture
+def sequence() -> Sequence:
+    return make_sequence()
+
+
+@pytest.fixture
+def data_root(tmp_path):
+    """A data root holding ``meshes/box.obj`` (a 6 x 4 x 8 cm box)."""
+    (tmp_path / "meshes").mkdir()
+    trimesh.creation.box(extents=(0.06, 0.04, 0.08)).export(tmp_path / "meshes" / "box.obj")
+    return tmp_path
