@@ -1,6 +1,12 @@
 """dexflow: human hand-object interaction retargeted to robot hands (the DexFlow method)."""
 
-from dexflow.errors import ConfigError, DexflowError, HandConfigError, MeshError, SequenceFormatError
+from dexflow.errors import (
+    ConfigError,
+    DexflowError,
+    HandConfigError,
+    MeshError,
+    SequenceFormatError,
+)
 
 __version__ = "0.1.0"
 

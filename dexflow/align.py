@@ -123,7 +123,9 @@ def prepare_object(job: ObjectJob, in_root: Path, out_root: Path, params: Pipeli
     return meta
 
 
-def align_sequence(path: Path, in_root: Path, out_root: Path, params: PipelineParams, key: str) -> dict:
+def align_sequence(
+    path: Path, in_root: Path, out_root: Path, params: PipelineParams, key: str
+) -> dict:
     """Scale one sequence file and write it below ``out_root/sequences``."""
     seq = load_sequence(path, data_root=in_root)
     aligned = scale_sequence(seq, params.hand.scale, params.hand.fingertip_offsets)
@@ -176,7 +178,9 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
     seq_results = map_items(run_one, todo, n_jobs, "sequences")
     sequences = {stem: {"status": "failed", "error": e} for stem, e in errors.items()}
     for r in seq_results:
-        sequences[r.item.stem] = {"status": "ok", **r.value} if r.ok else {"status": "failed", "error": r.error}
+        sequences[r.item.stem] = (
+            {"status": "ok", **r.value} if r.ok else {"status": "failed", "error": r.error}
+        )
     summary = {
         "stage": "scale_align",
         "hand": params.hand.name,

@@ -35,7 +35,9 @@ def _cmd_params(args: argparse.Namespace) -> int:
     sys.stdout.writelines(
         difflib.unified_diff(current.splitlines(True), fresh.splitlines(True), str(target), "conf/")
     )
-    print(f"\n{target} differs from the composition of conf/: run `dexflow params`", file=sys.stderr)
+    print(
+        f"\n{target} differs from the composition of conf/: run `dexflow params`", file=sys.stderr
+    )
     return 1
 
 
@@ -62,8 +64,9 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from dexflow.data.demo import DemoConfig, generate_demo
 
-    cfg = DemoConfig(seed=args.seed, objects=args.objects or [],
-                     sequences_per_object=args.sequences_per_object)
+    cfg = DemoConfig(
+        seed=args.seed, objects=args.objects or [], sequences_per_object=args.sequences_per_object
+    )
     manifest = generate_demo(cfg, args.out, n_jobs=args.jobs)
     print(f"{manifest['num_sequences']} sequences, {manifest['num_frames']} frames in {args.out}")
     return 0
@@ -96,8 +99,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
     from dexflow.errors import DexflowError
 
     try:

@@ -48,7 +48,9 @@ class HandParams:
     def __post_init__(self) -> None:
         _require(self.scale > 0, "hand.scale", "a factor > 0", self.scale)
         unknown = sorted(set(self.fingertip_offsets) - set(FINGERS))
-        _require(not unknown, "hand.fingertip_offsets", f"finger names among {list(FINGERS)}", unknown)
+        _require(
+            not unknown, "hand.fingertip_offsets", f"finger names among {list(FINGERS)}", unknown
+        )
 
 
 @dataclass
@@ -64,12 +66,21 @@ class DataParams:
 
 def _validate_demo(d: DemoConfig) -> None:
     _require(d.fps > 0, "demo.fps", "> 0", d.fps)
-    _require(2 <= d.min_frames <= d.max_frames, "demo.min_frames/max_frames",
-             "2 <= min_frames <= max_frames", (d.min_frames, d.max_frames))
-    _require(d.sequences_per_object >= 1, "demo.sequences_per_object", ">= 1",
-             d.sequences_per_object)
-    _require(0 <= d.inside_fraction + d.hover_fraction <= 1, "demo.inside_fraction + hover_fraction",
-             "within [0, 1]", d.inside_fraction + d.hover_fraction)
+    _require(
+        2 <= d.min_frames <= d.max_frames,
+        "demo.min_frames/max_frames",
+        "2 <= min_frames <= max_frames",
+        (d.min_frames, d.max_frames),
+    )
+    _require(
+        d.sequences_per_object >= 1, "demo.sequences_per_object", ">= 1", d.sequences_per_object
+    )
+    _require(
+        0 <= d.inside_fraction + d.hover_fraction <= 1,
+        "demo.inside_fraction + hover_fraction",
+        "within [0, 1]",
+        d.inside_fraction + d.hover_fraction,
+    )
 
 
 @dataclass
@@ -84,8 +95,9 @@ class ConvexParams:
     mcts_nodes: int = 10
 
     def __post_init__(self) -> None:
-        _require(0 < self.threshold <= 1, "scale_align.convex.threshold", "within (0, 1]",
-                 self.threshold)
+        _require(
+            0 < self.threshold <= 1, "scale_align.convex.threshold", "within (0, 1]", self.threshold
+        )
 
 
 @dataclass
@@ -98,11 +110,16 @@ class ScaleAlignParams:
     convex: ConvexParams = field(default_factory=ConvexParams)
 
     def __post_init__(self) -> None:
-        _require(0 < self.sdf_spacing_m <= 0.02, "scale_align.sdf_spacing_m",
-                 "a grid spacing in (0, 0.02] metres", self.sdf_spacing_m)
+        _require(
+            0 < self.sdf_spacing_m <= 0.02,
+            "scale_align.sdf_spacing_m",
+            "a grid spacing in (0, 0.02] metres",
+            self.sdf_spacing_m,
+        )
         _require(self.sdf_padding_m >= 0, "scale_align.sdf_padding_m", ">= 0", self.sdf_padding_m)
-        _require(self.surface_samples >= 16, "scale_align.surface_samples", ">= 16",
-                 self.surface_samples)
+        _require(
+            self.surface_samples >= 16, "scale_align.surface_samples", ">= 16", self.surface_samples
+        )
 
 
 @dataclass
@@ -113,8 +130,12 @@ class RunParams:
     n_jobs: int = -1
 
     def __post_init__(self) -> None:
-        _require(self.backend in ("sequential", "local"), "run.backend",
-                 "'sequential' or 'local'", self.backend)
+        _require(
+            self.backend in ("sequential", "local"),
+            "run.backend",
+            "'sequential' or 'local'",
+            self.backend,
+        )
         _require(self.n_jobs == -1 or self.n_jobs >= 1, "run.n_jobs", "-1 or >= 1", self.n_jobs)
 
     @property

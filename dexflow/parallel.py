@@ -40,7 +40,9 @@ def _run(func: Callable[[Any], T], item: Any) -> ItemResult[T]:
     try:
         return ItemResult(item, value=func(item))
     except Exception as exc:  # one bad item must not take the others down (DESIGN §8)
-        return ItemResult(item, error=f"{type(exc).__name__}: {exc}", details=traceback.format_exc())
+        return ItemResult(
+            item, error=f"{type(exc).__name__}: {exc}", details=traceback.format_exc()
+        )
 
 
 def map_items(
@@ -80,4 +82,6 @@ def raise_first_error(results: list[ItemResult]) -> None:
     failed = [r for r in results if not r.ok]
     if failed:
         lines = "\n".join(f"  {r.item}: {r.error}" for r in failed)
-        raise RuntimeError(f"{len(failed)} of {len(results)} items failed:\n{lines}\n\n{failed[0].details}")
+        raise RuntimeError(
+            f"{len(failed)} of {len(results)} items failed:\n{lines}\n\n{failed[0].details}"
+        )

@@ -10,9 +10,19 @@ from pathlib import Path
 from dexflow.config import load_params
 from dexflow.data.demo import generate_demo
 from dexflow.io.atomic import save_json
+from dexflow.plots import plot_sequence_frames
 
 OUT = "data/demo"
 METRICS = "reports/metrics/demo.json"
+FIGURE = "reports/figures/demo.png"
+FIGURE_OBJECTS = (
+    "025_mug",
+    "024_bowl",
+    "011_banana",
+    "005_tomato_soup_can",
+    "051_large_clamp",
+    "006_mustard_bottle",
+)
 
 
 def main() -> int:
@@ -23,15 +33,24 @@ def main() -> int:
         shutil.rmtree(out)
     manifest = generate_demo(params.demo, out, n_jobs=params.run.jobs)
     entries = manifest["sequences"]
-    save_json(METRICS, {
-        "objects": len(manifest["objects"]),
-        "sequences": manifest["num_sequences"],
-        "frames": manifest["num_frames"],
-        "dropout_frames": sum(e["dropout_frames"] for e in entries),
-        "tracking_lost_frames": sum(e["tracking_lost_frames"] for e in entries),
-    })
-    logging.info("demo: %d sequences, %d frames in %s", manifest["num_sequences"],
-                 manifest["num_frames"], out)
+    save_json(
+        METRICS,
+        {
+            "objects": len(manifest["objects"]),
+            "sequences": manifest["num_sequences"],
+            "frames": manifest["num_frames"],
+            "dropout_frames": sum(e["dropout_frames"] for e in entries),
+            "tracking_lost_frames": sum(e["tracking_lost_frames"] for e in entries),
+        },
+    )
+    shown = [e["name"] for e in entries if e["name"].split("__")[0] in FIGURE_OBJECTS]
+    plot_sequence_frames(out, shown[:: max(1, len(shown) // 6)][:6], FIGURE)
+    logging.info(
+        "demo: %d sequences, %d frames in %s",
+        manifest["num_sequences"],
+        manifest["num_frames"],
+        out,
+    )
     return 0
 
 

@@ -25,8 +25,11 @@ def test_committed_params_equal_the_composition_of_conf(tmp_path):
 
 @pytest.mark.parametrize(
     "override",
-    [f"{group}={option}" for group in ("hand", "data", "demo", "scale_align", "run")
-     for option in _options(group)],
+    [
+        f"{group}={option}"
+        for group in ("hand", "data", "demo", "scale_align", "run")
+        for option in _options(group)
+    ],
 )
 def test_every_group_option_composes_and_validates(tmp_path, override):
     params = load_params(compose_params([override], tmp_path / "p.yaml", config_dir=ROOT / "conf"))
@@ -36,8 +39,9 @@ def test_every_group_option_composes_and_validates(tmp_path, override):
 
 
 def test_sweep_override_reaches_params(tmp_path):
-    path = compose_params(["scale_align.sdf_spacing_m=0.003", "seed=7"], tmp_path / "p.yaml",
-                          config_dir=ROOT / "conf")
+    path = compose_params(
+        ["scale_align.sdf_spacing_m=0.003", "seed=7"], tmp_path / "p.yaml", config_dir=ROOT / "conf"
+    )
     params = load_params(path)
     assert params.scale_align.sdf_spacing_m == 0.003
     assert params.demo.seed == 7  # ${seed} interpolation resolved as DVC does

@@ -15,7 +15,11 @@ SMALL = dict(objects=["061_foam_brick"], sequences_per_object=2, min_frames=60, 
 
 
 def _files(root):
-    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(root).as_posix(): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def test_same_seed_gives_identical_files(tmp_path):
@@ -49,11 +53,17 @@ def _skin_distance(seq, keypoints, mesh_path):
     return (sdf.query(skin) - radii).min(axis=-1)
 
 
-@pytest.mark.parametrize(("mode", "lo", "hi"), [("inside", -0.0105, -0.0025), ("hover", 0.0, 0.0115)])
+@pytest.mark.parametrize(
+    ("mode", "lo", "hi"), [("inside", -0.0105, -0.0025), ("hover", 0.0, 0.0115)]
+)
 def test_annotation_error_puts_contacts_inside_or_hovering(tmp_path, mode, lo, hi):
     cfg = DemoConfig(
-        seed=1, objects=["005_tomato_soup_can"], sequences_per_object=1, noise_std_m=0.0,
-        dropout_bursts=0.0, tracking_loss_probability=0.0,
+        seed=1,
+        objects=["005_tomato_soup_can"],
+        sequences_per_object=1,
+        noise_std_m=0.0,
+        dropout_bursts=0.0,
+        tracking_loss_probability=0.0,
         inside_fraction=1.0 if mode == "inside" else 0.0,
         hover_fraction=1.0 if mode == "hover" else 0.0,
     )
@@ -70,8 +80,13 @@ def test_annotation_error_puts_contacts_inside_or_hovering(tmp_path, mode, lo, h
 
 
 def test_tracker_artefacts_are_present_and_marked(tmp_path):
-    cfg = DemoConfig(seed=2, objects=["061_foam_brick"], sequences_per_object=1,
-                     dropout_bursts=3.0, tracking_loss_probability=1.0)
+    cfg = DemoConfig(
+        seed=2,
+        objects=["061_foam_brick"],
+        sequences_per_object=1,
+        dropout_bursts=3.0,
+        tracking_loss_probability=1.0,
+    )
     generate_demo(cfg, tmp_path)
     seq = load_sequence(next((tmp_path / "sequences").glob("*.npz")), data_root=tmp_path)
     dropped = ~seq.valid

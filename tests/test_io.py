@@ -19,8 +19,9 @@ def test_round_trip_keeps_every_field(tmp_path, sequence, data_root):
     kp[3] = np.nan
     gt = np.zeros((sequence.num_frames, 5), dtype=bool)
     gt[5:, 0] = True
-    seq = replace(sequence, keypoints=kp, valid=valid, gt_contact=gt,
-                  extras={"mano_pose": np.arange(6.0)})
+    seq = replace(
+        sequence, keypoints=kp, valid=valid, gt_contact=gt, extras={"mano_pose": np.arange(6.0)}
+    )
     path = data_root / "sequences" / "a.npz"
     save_sequence(path, seq, data_root=data_root)
     back = load_sequence(path, data_root=data_root)
@@ -29,7 +30,12 @@ def test_round_trip_keeps_every_field(tmp_path, sequence, data_root):
     np.testing.assert_array_equal(back.valid, valid)
     np.testing.assert_array_equal(back.gt_contact, gt)
     np.testing.assert_array_equal(back.extras["mano_pose"], np.arange(6.0))
-    assert (back.obj_mesh, back.obj_name, back.side, back.fps) == ("meshes/box.obj", "box", "right", 30.0)
+    assert (back.obj_mesh, back.obj_name, back.side, back.fps) == (
+        "meshes/box.obj",
+        "box",
+        "right",
+        30.0,
+    )
 
 
 def _bad(seq, **changes):
@@ -46,8 +52,12 @@ def _with_keypoint(seq, frame, value):
     ("make", "field", "frame", "words"),
     [
         (lambda s: _bad(s, keypoints=s.keypoints[:, :20]), "keypoints", None, "shape (T, 21, 3)"),
-        (lambda s: _bad(s, keypoints=s.keypoints[:1], obj_pose=s.obj_pose[:1]), "keypoints", None,
-         "at least 2 frames"),
+        (
+            lambda s: _bad(s, keypoints=s.keypoints[:1], obj_pose=s.obj_pose[:1]),
+            "keypoints",
+            None,
+            "at least 2 frames",
+        ),
         (lambda s: _bad(s, obj_pose=s.obj_pose[:-1]), "obj_pose", None, "shape (10, 4, 4)"),
         (lambda s: _bad(s, keypoints=_with_keypoint(s, 6, np.nan)), "keypoints", 6, "NaN"),
         (lambda s: _bad(s, keypoints=_with_keypoint(s, 2, np.inf)), "keypoints", 2, "inf"),
@@ -57,8 +67,12 @@ def _with_keypoint(seq, frame, value):
         (lambda s: _bad(s, fps=-30.0), "fps", None, "> 0"),
         (lambda s: _bad(s, fps=float("nan")), "fps", None, "> 0"),
         (lambda s: _bad(s, side="both"), "side", None, "'right' or 'left'"),
-        (lambda s: _bad(s, timestamps=np.r_[np.arange(5), np.arange(5)] / 30), "timestamps", 5,
-         "strictly increasing"),
+        (
+            lambda s: _bad(s, timestamps=np.r_[np.arange(5), np.arange(5)] / 30),
+            "timestamps",
+            5,
+            "strictly increasing",
+        ),
         (lambda s: _bad(s, gt_contact=np.zeros((10, 4), bool)), "gt_contact", None, "(10, 5)"),
         (lambda s: _bad(s, valid=np.zeros(10, bool)), "valid", None, "at least one tracked"),
     ],
@@ -98,7 +112,7 @@ def test_object_pose_must_be_rigid(sequence, change, words):
 
 
 def test_missing_mesh_is_named(tmp_path, sequence):
-    with pytest.raises(SequenceFormatError, match=r"obj_mesh.*meshes/box.obj"):
+    with pytest.raises(SequenceFormatError, match=r"obj_mesh.*meshes/box\.obj"):
         validate_sequence(sequence, data_root=tmp_path)
 
 
@@ -106,10 +120,10 @@ def test_missing_field_and_broken_file(tmp_path, sequence):
     arrays = sequence.to_arrays()
     del arrays["obj_pose"]
     np.savez(tmp_path / "no_pose.npz", **arrays)
-    with pytest.raises(SequenceFormatError, match="obj_pose.*required field"):
+    with pytest.raises(SequenceFormatError, match=r"obj_pose.*required field"):
         load_sequence(tmp_path / "no_pose.npz")
     (tmp_path / "broken.npz").write_bytes(b"not a zip archive")
-    with pytest.raises(SequenceFormatError, match="readable .npz"):
+    with pytest.raises(SequenceFormatError, match=r"readable \.npz"):
         load_sequence(tmp_path / "broken.npz")
     with pytest.raises(SequenceFormatError, match="no such file"):
         load_sequence(tmp_path / "absent.npz")

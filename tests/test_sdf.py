@@ -38,8 +38,9 @@ def test_sign_survives_holes():
     truth = np.linalg.norm(points, axis=-1) - 0.05
     clear = np.abs(truth) > 0.004
     sd = signed_distance(holed, points)
-    assert np.array_equal(np.sign(sd[clear & (points[:, 2] > -0.03)]),
-                          np.sign(truth[clear & (points[:, 2] > -0.03)]))
+    assert np.array_equal(
+        np.sign(sd[clear & (points[:, 2] > -0.03)]), np.sign(truth[clear & (points[:, 2] > -0.03)])
+    )
     # Near the hole the winding number still calls the centre line of the object inside.
     axis_points = np.stack([np.zeros(9), np.zeros(9), np.linspace(-0.036, 0.045, 9)], axis=-1)
     assert (signed_distance(holed, axis_points) < 0).all()
@@ -68,11 +69,18 @@ def test_grid_gradient_matches_finite_differences_and_points_outwards(tmp_path):
     points = points / np.linalg.norm(points, axis=-1, keepdims=True) * 0.052
     value, grad = grid.query(points, with_gradient=True)
     frac = ((points - grid.origin) / grid.spacing) % 1.0
-    points = points[((frac > 0.01) & (frac < 0.99)).all(axis=-1)]  # the gradient jumps at cell faces
+    points = points[
+        ((frac > 0.01) & (frac < 0.99)).all(axis=-1)
+    ]  # the gradient jumps at cell faces
     value, grad = grid.query(points, with_gradient=True)
     eps = 1e-6
-    fd = np.stack([(grid.query(points + eps * e) - grid.query(points - eps * e)) / (2 * eps)
-                   for e in np.eye(3)], axis=-1)
+    fd = np.stack(
+        [
+            (grid.query(points + eps * e) - grid.query(points - eps * e)) / (2 * eps)
+            for e in np.eye(3)
+        ],
+        axis=-1,
+    )
     np.testing.assert_allclose(grad, fd, atol=1e-3)
     radial = points / np.linalg.norm(points, axis=-1, keepdims=True)
     assert ((grad * radial).sum(-1) > 0.95).all()

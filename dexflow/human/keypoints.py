@@ -6,8 +6,8 @@ import numpy as np
 
 __all__ = [
     "FINGERS",
-    "FINGER_KEYPOINTS",
     "FINGERTIPS",
+    "FINGER_KEYPOINTS",
     "INDEX_MCP",
     "KEYPOINT_NAMES",
     "MIDDLE_MCP",
@@ -25,8 +25,9 @@ FINGERTIPS = tuple(chain[-1] for chain in FINGER_KEYPOINTS.values())
 WRIST = 0
 INDEX_MCP = FINGER_KEYPOINTS["index"][0]
 MIDDLE_MCP = FINGER_KEYPOINTS["middle"][0]
-KEYPOINT_NAMES = ("wrist",) + tuple(
-    f"{finger}_{part}" for finger in FINGERS for part in ("mcp", "pip", "dip", "tip")
+KEYPOINT_NAMES = (
+    "wrist",
+    *(f"{finger}_{part}" for finger in FINGERS for part in ("mcp", "pip", "dip", "tip")),
 )
 
 
@@ -50,7 +51,7 @@ def wrist_frame(keypoints: np.ndarray) -> np.ndarray:
     y = y - (y * z).sum(-1, keepdims=True) * z
     y = y / np.linalg.norm(y, axis=-1, keepdims=True)
     x = np.cross(y, z)
-    frame = np.zeros(kp.shape[:-2] + (4, 4))
+    frame = np.zeros((*kp.shape[:-2], 4, 4))
     frame[..., :3, 0] = x
     frame[..., :3, 1] = y
     frame[..., :3, 2] = z

@@ -74,7 +74,7 @@ class HandShape:
 
 def _rot_x(angle: np.ndarray) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
-    out = np.zeros(np.shape(angle) + (3, 3))
+    out = np.zeros((*np.shape(angle), 3, 3))
     out[..., 0, 0] = 1.0
     out[..., 1, 1], out[..., 1, 2] = c, -s
     out[..., 2, 1], out[..., 2, 2] = s, c
@@ -83,7 +83,7 @@ def _rot_x(angle: np.ndarray) -> np.ndarray:
 
 def _rot_y(angle: np.ndarray) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
-    out = np.zeros(np.shape(angle) + (3, 3))
+    out = np.zeros((*np.shape(angle), 3, 3))
     out[..., 1, 1] = 1.0
     out[..., 0, 0], out[..., 0, 2] = c, s
     out[..., 2, 0], out[..., 2, 2] = -s, c
@@ -92,7 +92,7 @@ def _rot_y(angle: np.ndarray) -> np.ndarray:
 
 def _rot_z(angle: np.ndarray) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
-    out = np.zeros(np.shape(angle) + (3, 3))
+    out = np.zeros((*np.shape(angle), 3, 3))
     out[..., 2, 2] = 1.0
     out[..., 0, 0], out[..., 0, 1] = c, -s
     out[..., 1, 0], out[..., 1, 1] = s, c
@@ -131,7 +131,7 @@ def forward_keypoints(
     shape = shape or HandShape()
     angles = np.asarray(angles, dtype=np.float64)
     batch = angles.shape[:-1]
-    kp = np.zeros(batch + (NUM_KEYPOINTS, 3))
+    kp = np.zeros((*batch, NUM_KEYPOINTS, 3))
     for i, finger in enumerate(FINGERS):
         a = angles[..., 4 * i : 4 * i + 4]
         if finger == "thumb":
@@ -146,7 +146,7 @@ def forward_keypoints(
             rot = _rot_x(-(shape.spread[finger] + a[..., 0])) @ _rot_y(a[..., 1])
             flex = (a[..., 2], a[..., 3])
         chain = FINGER_KEYPOINTS[finger]
-        pos = np.broadcast_to(shape.bases[finger] * shape.scale, batch + (3,))
+        pos = np.broadcast_to(shape.bases[finger] * shape.scale, (*batch, 3))
         kp[..., chain[0], :] = pos
         for j, length in enumerate(shape.bones[finger]):
             if j > 0:
@@ -180,7 +180,8 @@ def finger_capsules(
     for finger in FINGERS:
         chain = FINGER_KEYPOINTS[finger]
         segs = [
-            kp[..., chain[j], None, :] * (1 - t[:, None]) + kp[..., chain[j + 1], None, :] * t[:, None]
+            kp[..., chain[j], None, :] * (1 - t[:, None])
+            + kp[..., chain[j + 1], None, :] * t[:, None]
             for j in range(3)
         ]
         points.append(np.concatenate(segs, axis=-2))

@@ -121,7 +121,9 @@ def _fail(path: Path | None, name: str, expected: str, found: str, frame: int | 
 
 
 def _check_shape(path: Path | None, name: str, array: np.ndarray, shape: tuple) -> None:
-    ok = array.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, array.shape))
+    ok = array.ndim == len(shape) and all(
+        s is None or s == a for s, a in zip(shape, array.shape, strict=True)
+    )
     if not ok:
         want = "(" + ", ".join("T" if s is None else str(s) for s in shape) + ")"
         _fail(path, name, f"shape {want}", f"shape {tuple(array.shape)}")
@@ -186,8 +188,13 @@ def validate_sequence(
         step_bad = ~(np.diff(ts) > 0)
         if step_bad.any():
             frame = int(np.flatnonzero(step_bad)[0]) + 1
-            _fail(path, "timestamps", "strictly increasing seconds", f"{ts[frame]!r} after "
-                  f"{ts[frame - 1]!r}", frame)
+            _fail(
+                path,
+                "timestamps",
+                "strictly increasing seconds",
+                f"{ts[frame]!r} after {ts[frame - 1]!r}",
+                frame,
+            )
 
     if seq.side not in ("right", "left"):
         _fail(path, "side", "'right' or 'left'", repr(seq.side))
@@ -213,16 +220,26 @@ def validate_sequence(
     bottom_bad = np.abs(pose[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=-1) > _RIGID_TOL
     if bottom_bad.any():
         frame = int(np.flatnonzero(bottom_bad)[0])
-        _fail(path, "obj_pose", "a rigid transform with last row [0, 0, 0, 1]",
-              f"last row {pose[frame, 3].tolist()}", frame)
+        _fail(
+            path,
+            "obj_pose",
+            "a rigid transform with last row [0, 0, 0, 1]",
+            f"last row {pose[frame, 3].tolist()}",
+            frame,
+        )
     rot = pose[:, :3, :3]
     ortho_err = np.abs(rot.transpose(0, 2, 1) @ rot - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(rot)
     rot_bad = (ortho_err > _RIGID_TOL) | (np.abs(det - 1.0) > _RIGID_TOL)
     if rot_bad.any():
         frame = int(np.flatnonzero(rot_bad)[0])
-        _fail(path, "obj_pose", "a rotation block (R^T R = I, det R = +1, no scale)",
-              f"max |R^T R - I| = {ortho_err[frame]:.3g}, det R = {det[frame]:.6g}", frame)
+        _fail(
+            path,
+            "obj_pose",
+            "a rotation block (R^T R = I, det R = +1, no scale)",
+            f"max |R^T R - I| = {ortho_err[frame]:.3g}, det R = {det[frame]:.6g}",
+            frame,
+        )
 
     if seq.gt_contact is not None:
         gt = np.asarray(seq.gt_contact)
@@ -235,8 +252,12 @@ def validate_sequence(
     if data_root is not None:
         mesh_path = Path(data_root) / seq.obj_mesh
         if not mesh_path.is_file():
-            _fail(path, "obj_mesh", f"an existing mesh file below {data_root}",
-                  f"'{seq.obj_mesh}' (no file at {mesh_path})")
+            _fail(
+                path,
+                "obj_mesh",
+                f"an existing mesh file below {data_root}",
+                f"'{seq.obj_mesh}' (no file at {mesh_path})",
+            )
     return seq
 
 

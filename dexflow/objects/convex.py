@@ -33,7 +33,9 @@ def convex_decomposition(
 
     coacd.set_log_level("error")
     parts = coacd.run_coacd(
-        coacd.Mesh(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int32)),
+        coacd.Mesh(
+            np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int32)
+        ),
         threshold=threshold,
         max_convex_hull=max_hulls,
         preprocess_resolution=preprocess_resolution,

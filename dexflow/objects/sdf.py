@@ -130,7 +130,7 @@ class SignedDistanceGrid:
         if not with_gradient:
             return dist.reshape(shape)
         gx = (c[:, 1] - c[:, 0]) / self.spacing
-        gx = (gx[:, 0] * (1 - fy) + gx[:, 1] * fy)
+        gx = gx[:, 0] * (1 - fy) + gx[:, 1] * fy
         gx = gx[:, 0] * (1 - fz) + gx[:, 1] * fz
         gy = (cx[:, 1] - cx[:, 0]) / self.spacing
         gy = gy[:, 0] * (1 - fz) + gy[:, 1] * fz
@@ -139,10 +139,12 @@ class SignedDistanceGrid:
         away = outside > 0
         if away.any():
             grad[away] = (flat[away] - clamped[away]) / outside[away, None]
-        return dist.reshape(shape), grad.reshape(shape + (3,))
+        return dist.reshape(shape), grad.reshape((*shape, 3))
 
     def save(self, path: str | Path) -> None:
-        save_npz(path, {"origin": self.origin, "spacing": np.array(self.spacing), "values": self.values})
+        save_npz(
+            path, {"origin": self.origin, "spacing": np.array(self.spacing), "values": self.values}
+        )
 
     @classmethod
     def load(cls, path: str | Path) -> SignedDistanceGrid:
