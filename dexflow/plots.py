@@ -48,6 +48,8 @@ def plot_sequence_frames(
 
     Fingertips circled in black are in contact according to ``gt_contact``.
     """
+    if not names:
+        raise ValueError("plot_sequence_frames: no sequence names given")
     data_root = Path(data_root)
     rows = int(np.ceil(len(names) / columns))
     fig = plt.figure(figsize=(4 * columns, 4 * rows))

@@ -43,7 +43,8 @@ def main() -> int:
             "tracking_lost_frames": sum(e["tracking_lost_frames"] for e in entries),
         },
     )
-    shown = [e["name"] for e in entries if e["name"].split("__")[0] in FIGURE_OBJECTS]
+    names = [e["name"] for e in entries]
+    shown = [n for n in names if n.split("__")[0] in FIGURE_OBJECTS] or names
     plot_sequence_frames(out, shown[:: max(1, len(shown) // 6)][:6], FIGURE)
     logging.info(
         "demo: %d sequences, %d frames in %s",
