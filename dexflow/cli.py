@@ -4,6 +4,9 @@ Subcommands:
   params [OVERRIDE ...] [--check]   compose conf/ into params.yaml (as `dvc exp run` does)
   validate PATH [--data-root DIR]   check sequence files against the canonical format
   demo OUT [--objects ...]          generate (part of) the demo dataset outside the pipeline
+  hand check NAME|YAML [--png P]    validate a hand, print its kinematic tree, draw its zero pose
+  hand export NAME|YAML OUT.urdf    write an MJCF hand as a URDF (for pybullet)
+  bench fk                          forward-kinematics throughput of every hand
 """
 
 from __future__ import annotations
@@ -72,6 +75,31 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_hand_check(args: argparse.Namespace) -> int:
+    from dexflow.hands.check import check_hand
+
+    name = Path(args.hand).stem
+    png = args.png or f"{name}_zero_pose.png"
+    _, report = check_hand(args.hand, out_png=png)
+    print(report)
+    return 0
+
+
+def _cmd_hand_export(args: argparse.Namespace) -> int:
+    from dexflow.hands.export import export_urdf
+    from dexflow.hands.robot import load_hand
+
+    print(export_urdf(load_hand(args.hand).model, args.out))
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from dexflow.bench import bench_fk
+
+    bench_fk(args.hands or None, repeats=args.repeats)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dexflow", description=__doc__.split("\n\n")[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -94,6 +122,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=1)
     p.set_defaults(func=_cmd_demo)
+
+    hand = sub.add_parser("hand", help="inspect robot hands").add_subparsers(
+        dest="hand_cmd", required=True
+    )
+    p = hand.add_parser("check", help="validate a hand, print its tree, draw its zero pose")
+    p.add_argument("hand", help="name in conf/hand/ or a yaml path")
+    p.add_argument("--png", default=None, help="zero-pose picture (default: <name>_zero_pose.png)")
+    p.set_defaults(func=_cmd_hand_check)
+    p = hand.add_parser("export", help="write an MJCF hand as a URDF")
+    p.add_argument("hand")
+    p.add_argument("out")
+    p.set_defaults(func=_cmd_hand_export)
+
+    p = sub.add_parser("bench", help="benchmarks (print frames/s)")
+    p.add_argument("what", choices=["fk"])
+    p.add_argument("--hands", nargs="*")
+    p.add_argument("--repeats", type=int, default=20)
+    p.set_defaults(func=_cmd_bench)
     return parser
 
 

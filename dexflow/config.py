@@ -17,7 +17,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from dexflow.data.demo import DemoConfig
 from dexflow.errors import ConfigError
-from dexflow.human.keypoints import FINGERS
+from dexflow.hands.spec import HandSpec as HandParams
 
 __all__ = [
     "ConvexParams",
@@ -35,22 +35,6 @@ __all__ = [
 def _require(condition: bool, key: str, expected: str, found: Any) -> None:
     if not condition:
         raise ConfigError(f"{key}: expected {expected}, found {found!r}")
-
-
-@dataclass
-class HandParams:
-    """The robot hand (``hand`` in params.yaml; one file per hand in ``conf/hand/``)."""
-
-    name: str = "shadow"
-    scale: float = 1.0
-    fingertip_offsets: dict[str, float] = field(default_factory=lambda: dict.fromkeys(FINGERS, 0.0))
-
-    def __post_init__(self) -> None:
-        _require(self.scale > 0, "hand.scale", "a factor > 0", self.scale)
-        unknown = sorted(set(self.fingertip_offsets) - set(FINGERS))
-        _require(
-            not unknown, "hand.fingertip_offsets", f"finger names among {list(FINGERS)}", unknown
-        )
 
 
 @dataclass

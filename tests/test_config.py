@@ -50,7 +50,7 @@ def test_sweep_override_reaches_params(tmp_path):
 @pytest.mark.parametrize(
     ("text", "words"),
     [
-        ("hand: {scale: -1.0}", "hand.scale"),
+        ("hand: {scale: -1.0}", "scale must be > 0"),
         ("hand: {fingertip_offsets: {pinky: 0.01}}", "pinky"),
         ("scale_align: {sdf_spacing_m: 0.5}", "scale_align.sdf_spacing_m"),
         ("scale_align: {sdf_spacing: 0.002}", "sdf_spacing"),

@@ -1,0 +1,251 @@
+"""A robot hand with a 6-DoF floating base: batched forward kinematics in torch.
+
+Configuration ``q (B, dof)``: the six floating-base "dummy joints" (translation x, y, z in
+metres, then rotations about x, y, z in radians, applied in that order: ``T_base = T(x, y, z)
+Rx Ry Rz``), followed by the hand's own joints in the model's chain order
+(:attr:`RobotHand.joint_names`). Every function takes a batch of frames and returns a batch;
+gradients flow through all of them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from dexflow.errors import HandConfigError
+from dexflow.hands.model import KinematicModel, load_kinematic_model, resolve_model_path
+from dexflow.hands.spec import HandSpec, load_hand_spec
+
+__all__ = ["BASE_JOINT_NAMES", "RobotHand", "load_hand"]
+
+BASE_JOINT_NAMES = (
+    "dummy_x_translation",
+    "dummy_y_translation",
+    "dummy_z_translation",
+    "dummy_x_rotation",
+    "dummy_y_rotation",
+    "dummy_z_rotation",
+)
+_BASE_TRANSLATION_LIMIT_M = 10.0
+_BASE_ROTATION_LIMIT = 2 * np.pi
+
+
+def _names_or_error(hand: str, kind: str, names, known) -> None:
+    missing = [n for n in names if n not in known]
+    if missing:
+        raise HandConfigError(
+            f"hand '{hand}': unknown {kind} {missing}; known: {', '.join(sorted(known))}"
+        )
+
+
+def _rotation(axis: int, angle: torch.Tensor) -> torch.Tensor:
+    c, s = torch.cos(angle), torch.sin(angle)
+    one, zero = torch.ones_like(angle), torch.zeros_like(angle)
+    rows = {
+        0: ((one, zero, zero), (zero, c, -s), (zero, s, c)),
+        1: ((c, zero, s), (zero, one, zero), (-s, zero, c)),
+        2: ((c, -s, zero), (s, c, zero), (zero, zero, one)),
+    }[axis]
+    return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
+
+
+def base_transform(q_base: torch.Tensor) -> torch.Tensor:
+    """(B, 4, 4) floating-base transforms from the six dummy joints ``q_base (B, 6)``."""
+    rot = _rotation(0, q_base[:, 3]) @ _rotation(1, q_base[:, 4]) @ _rotation(2, q_base[:, 5])
+    out = torch.zeros(q_base.shape[0], 4, 4, dtype=q_base.dtype, device=q_base.device)
+    out[:, :3, :3] = rot
+    out[:, :3, 3] = q_base[:, :3]
+    out[:, 3, 3] = 1.0
+    return out
+
+
+class RobotHand:
+    """A hand model ready for batched kinematics.
+
+    Args:
+        spec: The hand configuration.
+        base_dir: Directory relative model paths are resolved against.
+        dtype: torch.float32 or torch.float64.
+        device: Torch device.
+
+    Attributes:
+        spec: The configuration.
+        model: The parsed model file.
+        joint_names: All ``dof`` coordinates of ``q``: base then hand joints.
+        lower, upper: (dof,) joint limits (the base gets wide finite bounds).
+        keypoint_links: Frames matched to human keypoints, in ``spec.keypoints`` order.
+        mano_indices: Human keypoint index of each.
+        fingers: Finger name -> indices into ``q`` of its joints.
+    """
+
+    def __init__(
+        self,
+        spec: HandSpec,
+        base_dir: str | Path | None = None,
+        dtype: torch.dtype = torch.float64,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        self.spec = spec
+        self.dtype, self.device = dtype, torch.device(device)
+        path = resolve_model_path(spec.model, base_dir)
+        self.model: KinematicModel = load_kinematic_model(path, spec.root)
+        self.chain = self.model.chain.to(dtype=dtype, device=self.device)
+        self.hand_joint_names = list(self.model.joint_names)
+        self.joint_names = list(BASE_JOINT_NAMES) + self.hand_joint_names
+        self.dof = len(self.joint_names)
+        index = {name: i for i, name in enumerate(self.joint_names)}
+        frames = set(self.model.frames)
+
+        _names_or_error(spec.name, "keypoint links", [k.link for k in spec.keypoints], frames)
+        for finger, fs in spec.fingers.items():
+            _names_or_error(
+                spec.name, f"joints in finger '{finger}'", fs.joints, self.hand_joint_names
+            )
+            _names_or_error(spec.name, f"links in finger '{finger}'", fs.links, frames)
+        _names_or_error(spec.name, "extra_joints", spec.extra_joints, self.hand_joint_names)
+        for c in spec.couplings:
+            _names_or_error(spec.name, "coupled joints", [c.joint, c.leader], self.hand_joint_names)
+
+        base_lim = [_BASE_TRANSLATION_LIMIT_M] * 3 + [_BASE_ROTATION_LIMIT] * 3
+        lower = np.concatenate([-np.asarray(base_lim), self.model.lower])
+        upper = np.concatenate([np.asarray(base_lim), self.model.upper])
+        self.lower = torch.as_tensor(lower, dtype=dtype, device=self.device)
+        self.upper = torch.as_tensor(upper, dtype=dtype, device=self.device)
+
+        self.keypoint_links = [k.link for k in spec.keypoints]
+        self.mano_indices = [k.mano for k in spec.keypoints]
+        self.fingers = {f: [index[j] for j in fs.joints] for f, fs in spec.fingers.items()}
+        self._coupled = torch.tensor([index[c.joint] for c in spec.couplings], dtype=torch.long)
+        self._leader = torch.tensor([index[c.leader] for c in spec.couplings], dtype=torch.long)
+        self._ratio = torch.tensor([c.ratio for c in spec.couplings], dtype=dtype)
+        self._coupling_offset = torch.tensor([c.offset for c in spec.couplings], dtype=dtype)
+
+        self._build_surface()
+        needed = list(dict.fromkeys(self.keypoint_links + self.surface_links))
+        self.frame_names = needed
+        self._frame_index = {name: i for i, name in enumerate(needed)}
+        self._pk_indices = self.chain.get_frame_indices(*needed)
+        offsets = torch.tensor([k.offset for k in spec.keypoints], dtype=dtype)
+        self._keypoint_offsets = offsets.to(self.device)
+        self._keypoint_frames = torch.tensor([self._frame_index[n] for n in self.keypoint_links])
+
+    # ------------------------------------------------------------------------------ surface
+
+    def _build_surface(self) -> None:
+        """Sample points with outward normals on the collision geometry, in link frames."""
+        excluded = set(getattr(self.spec, "surface_exclude", []) or [])
+        geoms = [g for g in self.model.geometries if g.link not in excluded]
+        if not geoms:
+            self.surface_links = []
+            self._surface_local = torch.zeros(0, 3, dtype=self.dtype)
+            self._surface_normals = torch.zeros(0, 3, dtype=self.dtype)
+            self._surface_link = torch.zeros(0, dtype=torch.long)
+            return
+        areas = np.array([g.mesh.area for g in geoms])
+        counts = np.maximum(4, np.round(areas / areas.sum() * self.spec.surface_points)).astype(int)
+        points, normals, link_of = [], [], []
+        links = list(dict.fromkeys(g.link for g in geoms))
+        for i, (geom, count) in enumerate(zip(geoms, counts, strict=True)):
+            pts, faces = trimesh.sample.sample_surface_even(geom.mesh, int(count), seed=i)
+            if len(pts) < count:  # even sampling may return fewer; top up uniformly
+                extra, extra_faces = trimesh.sample.sample_surface(
+                    geom.mesh, int(count) - len(pts), seed=i
+                )
+                pts, faces = np.vstack([pts, extra]), np.concatenate([faces, extra_faces])
+            points.append(pts)
+            normals.append(geom.mesh.face_normals[faces])
+            link_of.append(np.full(len(pts), links.index(geom.link)))
+        self.surface_links = links
+        self._surface_local = torch.as_tensor(
+            np.vstack(points), dtype=self.dtype, device=self.device
+        )
+        self._surface_normals = torch.as_tensor(
+            np.vstack(normals), dtype=self.dtype, device=self.device
+        )
+        self._surface_link = torch.as_tensor(np.concatenate(link_of), device=self.device)
+
+    @property
+    def surface_point_links(self) -> list[str]:
+        """Link name of every surface point."""
+        return [self.surface_links[i] for i in self._surface_link.tolist()]
+
+    # --------------------------------------------------------------------------- kinematics
+
+    def as_q(self, q) -> torch.Tensor:
+        """``q`` as a (B, dof) tensor of this hand's dtype and device."""
+        q = torch.as_tensor(q, dtype=self.dtype, device=self.device)
+        if q.ndim == 1:
+            q = q[None]
+        if q.shape[-1] != self.dof:
+            raise ValueError(
+                f"hand '{self.spec.name}': q has {q.shape[-1]} columns, expected {self.dof}"
+            )
+        return q
+
+    def zero(self, batch: int = 1) -> torch.Tensor:
+        """(batch, dof) configuration at zero, clamped into the joint limits."""
+        q = torch.zeros(batch, self.dof, dtype=self.dtype, device=self.device)
+        return self.clamp(q)
+
+    def clamp(self, q: torch.Tensor) -> torch.Tensor:
+        """Clamp into the joint limits."""
+        return torch.maximum(torch.minimum(q, self.upper), self.lower)
+
+    def apply_couplings(self, q: torch.Tensor) -> torch.Tensor:
+        """Set every coupled joint from its leader (a new tensor; differentiable)."""
+        if len(self._coupled) == 0:
+            return q
+        q = q.clone()
+        q[:, self._coupled] = q[:, self._leader] * self._ratio + self._coupling_offset
+        return q
+
+    def frame_transforms(self, q) -> torch.Tensor:
+        """(B, F, 4, 4) world transforms of :attr:`frame_names` (keypoint and surface links)."""
+        q = self.as_q(q)
+        ret = self.chain.forward_kinematics(q[:, 6:], frame_indices=self._pk_indices)
+        local = torch.stack([ret[name].get_matrix() for name in self.frame_names], dim=1)
+        return base_transform(q[:, :6])[:, None] @ local
+
+    def link_transforms(self, q, names: list[str]) -> torch.Tensor:
+        """(B, len(names), 4, 4) world transforms of any frames of the model."""
+        q = self.as_q(q)
+        _names_or_error(self.spec.name, "frames", names, set(self.model.frames))
+        ret = self.chain.forward_kinematics(
+            q[:, 6:], frame_indices=self.chain.get_frame_indices(*names)
+        )
+        local = torch.stack([ret[name].get_matrix() for name in names], dim=1)
+        return base_transform(q[:, :6])[:, None] @ local
+
+    def keypoints(self, q, transforms: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, K, 3) world positions of the keypoint links (plus offsets)."""
+        t = self.frame_transforms(q) if transforms is None else transforms
+        t = t[:, self._keypoint_frames]
+        return (t[..., :3, :3] @ self._keypoint_offsets[..., None])[..., 0] + t[..., :3, 3]
+
+    def surface(
+        self, q, transforms: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """World surface points (B, N, 3) and outward normals (B, N, 3) of the hand."""
+        t = self.frame_transforms(q) if transforms is None else transforms
+        frame_idx = torch.tensor(
+            [self._frame_index[n] for n in self.surface_links], device=self.device
+        )
+        t = t[:, frame_idx[self._surface_link]]
+        rot = t[..., :3, :3]
+        points = (rot @ self._surface_local[..., None])[..., 0] + t[..., :3, 3]
+        normals = (rot @ self._surface_normals[..., None])[..., 0]
+        return points, normals
+
+
+def load_hand(
+    name_or_path: str | Path,
+    dtype: torch.dtype = torch.float64,
+    device: str = "cpu",
+    conf_dir: str | Path | None = None,
+) -> RobotHand:
+    """Build a :class:`RobotHand` from a hand name in ``conf/hand`` or a yaml path."""
+    spec, base_dir = load_hand_spec(name_or_path, conf_dir)
+    return RobotHand(spec, base_dir, dtype=dtype, device=device)
