@@ -155,9 +155,14 @@ class RobotHand:
                     geom.mesh, int(count) - len(pts), seed=i
                 )
                 pts, faces = np.vstack([pts, extra]), np.concatenate([faces, extra_faces])
-            points.append(pts)
-            normals.append(geom.mesh.face_normals[faces])
-            link_of.append(np.full(len(pts), links.index(geom.link)))
+            # Drop points buried inside another shape of the same link: not on its surface.
+            buried = np.zeros(len(pts), dtype=bool)
+            for other in geoms:
+                if other is not geom and other.link == geom.link and other.mesh.is_watertight:
+                    buried |= other.mesh.contains(pts)
+            points.append(pts[~buried])
+            normals.append(geom.mesh.face_normals[faces[~buried]])
+            link_of.append(np.full(int((~buried).sum()), links.index(geom.link)))
         self.surface_links = links
         self._surface_local = torch.as_tensor(
             np.vstack(points), dtype=self.dtype, device=self.device
