@@ -67,11 +67,11 @@ def bench_fk(
             q_np[:, :6] = rng.uniform(-0.3, 0.3, size=(batch, 6))
             q = torch.as_tensor(q_np)
             with torch.no_grad():
-                kp_rate = _rate(lambda q=q: hand.keypoints(q), batch, repeats)
-                surf_rate = _rate(lambda q=q: hand.surface(q), batch, max(3, repeats // 4))
+                kp_rate = _rate(lambda q=q, h=hand: h.keypoints(q), batch, repeats)
+                surf_rate = _rate(lambda q=q, h=hand: h.surface(q), batch, max(3, repeats // 4))
                 loop_q = q[: min(batch, 64)]
                 loop_rate = _rate(
-                    lambda lq=loop_q: [hand.keypoints(r) for r in lq],
+                    lambda lq=loop_q, h=hand: [h.keypoints(r) for r in lq],
                     len(loop_q),
                     max(3, repeats // 4),
                 )
