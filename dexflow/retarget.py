@@ -1,0 +1,511 @@
+"""Stage retarget (paper §III-B): human keypoints -> robot joint trajectories.
+
+**DexFlow** (``method: dexflow``) minimises, over the trajectory ``q_1..q_T``,
+
+    E = Σ_t w_t Σ_i ρ(||v_H^i(t) - v_R^i(q_t)||²)                     (alignment, N keypoints)
+      + α Σ_t ||q_t - q_{t-1}||²                                        (velocity)
+      + λ Σ_t ||q_t - 2 q_{t-1} + q_{t-2}||²_{Σ⁻¹}                      (differential)
+      + γ Σ_t ||q_t - q_t^pred||²,  q_t^pred = q_{t-1} + Δt q̇_{t-1}    (prediction)
+
+with ``q̇_{t-1} = (q_{t-1} - q_{t-2}) / Δt`` (so the prediction term penalises acceleration in
+plain joint units, the differential term in units of Σ). ``Σ`` is the kinematic covariance of
+the joints, taken diagonal: each hand joint's variance is that of a uniform distribution over
+its range, ``(upper - lower)² / 12``, so a joint with a large range may accelerate more; the
+floating base uses ``base_sigma_m`` and ``base_sigma_rad``. ``ρ`` is the identity or, with
+``robust_delta_m > 0``, a Huber loss on each keypoint's distance (iteratively reweighted).
+``w_t`` is 0 on frames that carry no usable observation (NaN dropouts, ``valid = False``, or
+tracking loss detected as a wrist jump): there only the temporal terms act, so the trajectory
+is bridged smoothly through the gap and the bad frames never pull on their neighbours.
+
+``window: 0`` optimises all frames jointly (every k-window of the paper is inside this sum);
+``window: k`` solves the paper's causal sliding window: frames t-k+1..t are optimised with the
+frames before them fixed, then the window moves on by one frame.
+
+The solver is a projected Levenberg-Marquardt method: analytic keypoint Jacobians for all frames
+in one batched forward-kinematics call, the temporal terms as a constant banded matrix, and
+each step one banded Cholesky solve; joint limits hold by projection after every step and
+coupled joints (tendons) are tied exactly by solving only for their leaders.
+
+Initialisation: the floating base is a rigid fit (Kabsch) of the robot's palm keypoints to the
+human's, frame by frame; the hand joints start from nlopt's ``GN_CRS2_LM`` global search as in
+the paper, run on the first frame (``global_search: first_frame``), on every frame
+(``every_frame``, the paper's exact setting, about a second a frame) or not at all (``off``).
+Frames whose error jumps after solving are re-initialised by the global search and solved again.
+
+**Baseline** (``method: position``): each frame on its own, the alignment term alone (the
+position retargeting of dex-retargeting, warm-started from the previous frame), optionally
+low-pass filtered afterwards; frames without an observation hold the last solution.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.linalg import solveh_banded
+from scipy.ndimage import median_filter
+from scipy.spatial.transform import Rotation
+
+from dexflow.hands.jacobian import KeypointJacobian
+from dexflow.hands.robot import RobotHand
+from dexflow.io.sequence import Sequence
+
+__all__ = [
+    "GlobalSearchParams",
+    "RetargetParams",
+    "RetargetResult",
+    "detect_bad_frames",
+    "retarget_sequence",
+]
+
+log = logging.getLogger(__name__)
+
+_PALM_MANO = (0, 1, 5, 9, 13, 17)
+
+
+@dataclass
+class GlobalSearchParams:
+    """nlopt global search used for initialisation (paper: GN_CRS2_LM)."""
+
+    mode: str = "first_frame"
+    algorithm: str = "GN_CRS2_LM"
+    max_evals: int = 3000
+    seed: int = 0
+
+
+@dataclass
+class RetargetParams:
+    """Stage ``retarget`` (``retarget`` in params.yaml). Weights are relative to metres²."""
+
+    method: str = "dexflow"
+    alpha: float = 0.002
+    lambda_diff: float = 0.1
+    gamma_pred: float = 0.5
+    window: int = 0
+    base_sigma_m: float = 0.05
+    base_sigma_rad: float = 0.5
+    robust_delta_m: float = 0.02
+    iterations: int = 30
+    tolerance: float = 1e-3
+    global_search: GlobalSearchParams = field(default_factory=GlobalSearchParams)
+    recover_error_m: float = 0.03
+    recover_factor: float = 3.0
+    max_recoveries: int = 5
+    jump_threshold_m: float = 0.08
+    lowpass_hz: float = 0.0
+
+
+@dataclass
+class RetargetResult:
+    """Outcome for one sequence (arrays over T frames).
+
+    Attributes:
+        q: (T, dof) joint trajectory, base first (``joint_names``).
+        joint_names: Names of the columns of ``q``.
+        keypoints_robot: (T, K, 3) robot keypoints.
+        keypoints_human: (T, K, 3) the human targets they were matched to.
+        error_m: (T,) mean keypoint distance per frame (NaN where unobserved).
+        observed: (T,) frames whose keypoints were used.
+        lost: (T,) frames detected as tracking loss.
+        stats: Solver statistics.
+    """
+
+    q: np.ndarray
+    joint_names: list[str]
+    keypoints_robot: np.ndarray
+    keypoints_human: np.ndarray
+    error_m: np.ndarray
+    observed: np.ndarray
+    lost: np.ndarray
+    stats: dict
+
+
+def detect_bad_frames(seq: Sequence, jump_threshold_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Frames to leave unfitted: (observed (T,), lost (T,)).
+
+    ``lost`` marks tracking loss that a tracker reports as valid: the wrist more than
+    ``jump_threshold_m`` from the running median of the wrist (7 frames), or a hand whose
+    wrist-to-middle-MCP length departs by more than 30 % from the sequence median.
+    """
+    kp = np.asarray(seq.keypoints)
+    valid = seq.valid_mask & np.isfinite(kp).all(axis=(1, 2))
+    lost = np.zeros(len(kp), dtype=bool)
+    idx = np.flatnonzero(valid)
+    if len(idx) >= 3:
+        wrist = kp[idx, 0]
+        reference = median_filter(wrist, size=(min(7, len(idx) | 1), 1), mode="nearest")
+        jump = np.linalg.norm(wrist - reference, axis=-1) > jump_threshold_m
+        size = np.linalg.norm(kp[idx, 9] - kp[idx, 0], axis=-1)
+        odd = np.abs(size / np.median(size) - 1.0) > 0.3
+        lost[idx[jump | odd]] = True
+    return valid & ~lost, lost
+
+
+def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """(4, 4) rigid transform T minimising ||T src - dst|| (points (N, 3))."""
+    cs, cd = src.mean(0), dst.mean(0)
+    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = cd - rot @ cs
+    return out
+
+
+class _Problem:
+    """The free variables of a hand: joints that are not tied to another by a coupling."""
+
+    def __init__(self, hand: RobotHand, params: RetargetParams, fps: float) -> None:
+        self.hand, self.params = hand, params
+        dof = hand.dof
+        coupled = {int(i) for i in hand._coupled}
+        self.free = np.array([i for i in range(dof) if i not in coupled])
+        a = np.zeros((dof, len(self.free)))
+        a[self.free, np.arange(len(self.free))] = 1.0
+        b = np.zeros(dof)
+        for dep, lead, ratio, off in zip(hand._coupled.tolist(), hand._leader.tolist(),
+                                         hand._ratio.tolist(), hand._coupling_offset.tolist(),
+                                         strict=True):
+            a[dep, np.flatnonzero(self.free == lead)[0]] = ratio
+            b[dep] = off
+        self.a, self.b = a, b
+        lower, upper = hand.lower.numpy(), hand.upper.numpy()
+        self.lower, self.upper = lower[self.free], upper[self.free]
+        sigma = np.concatenate([[params.base_sigma_m] * 3, [params.base_sigma_rad] * 3,
+                                np.maximum((upper[6:] - lower[6:]) / np.sqrt(12.0), 1e-3)])
+        inv_cov = np.diag(1.0 / sigma**2)
+        # Temporal terms in free coordinates: velocity and acceleration weights (n x n).
+        self.w_vel = params.alpha * a.T @ a
+        self.w_acc = a.T @ (params.lambda_diff * inv_cov + params.gamma_pred * np.eye(dof)) @ a
+        self.jacobian = KeypointJacobian(hand)
+        self.dt = 1.0 / fps
+
+    def full(self, x: np.ndarray) -> np.ndarray:
+        return x @ self.a.T + self.b
+
+    def project(self, x: np.ndarray) -> np.ndarray:
+        return np.clip(x, self.lower, self.upper)
+
+    def keypoints(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        kp, jac = self.jacobian(torch.as_tensor(self.full(x), dtype=self.hand.dtype))
+        return kp.numpy(), jac.numpy() @ self.a  # (T,K,3), (T,K,3,n)
+
+
+def _temporal_blocks(n_frames: int, w_vel: np.ndarray, w_acc: np.ndarray, fixed: int = 0):
+    """Blocks of the constant temporal Hessian: diagonal (T,n,n), first (T-1) and second
+    (T-2) sub-diagonals, for velocity and acceleration terms over frames 1.. and 2.."""
+    n = w_vel.shape[0]
+    diag = np.zeros((n_frames, n, n))
+    sub1 = np.zeros((max(n_frames - 1, 0), n, n))
+    sub2 = np.zeros((max(n_frames - 2, 0), n, n))
+    for t in range(1, n_frames):  # (q_t - q_{t-1})
+        diag[t] += w_vel
+        diag[t - 1] += w_vel
+        sub1[t - 1] -= w_vel
+    coef = (1.0, -2.0, 1.0)
+    for t in range(2, n_frames):  # (q_t - 2 q_{t-1} + q_{t-2})
+        rows = (t, t - 1, t - 2)
+        for i in range(3):
+            for j in range(3):
+                ri, rj = rows[i], rows[j]
+                if ri < rj:
+                    continue
+                block = coef[i] * coef[j] * w_acc
+                if ri == rj:
+                    diag[ri] += block
+                elif ri - rj == 1:
+                    sub1[rj] += block
+                else:
+                    sub2[rj] += block
+    return diag, sub1, sub2
+
+
+def _to_banded(diag, sub1, sub2) -> np.ndarray:
+    """Lower banded storage (solveh_banded) of the symmetric block-pentadiagonal matrix."""
+    n_frames, n, _ = diag.shape
+    ab = np.zeros((3 * n, n_frames * n))
+    r, c = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    for offset, blocks in enumerate((diag, sub1, sub2)):
+        if len(blocks) == 0:
+            continue
+        keep = offset * n + r - c >= 0
+        rows = (offset * n + r - c)[keep]
+        cols = np.arange(len(blocks))[:, None] * n + c[keep][None]
+        ab[rows[None].repeat(len(blocks), 0), cols] = blocks[:, r[keep], c[keep]]
+    return ab
+
+
+def _solve_lm(problem: _Problem, x0: np.ndarray, targets: np.ndarray, weights: np.ndarray,
+              fixed: int, params: RetargetParams, temporal: bool) -> tuple[np.ndarray, dict]:
+    """Projected Levenberg-Marquardt on frames ``fixed..T`` (earlier frames held).
+
+    Args:
+        x0: (T, n) initial free coordinates.
+        targets: (T, K, 3) human keypoints (anything where the weight is 0).
+        weights: (T,) per-frame alignment weight.
+        fixed: Number of leading frames held fixed (they still enter temporal terms).
+        temporal: Include the temporal terms (False: frames independent).
+    """
+    x = problem.project(x0.copy())
+    n_frames, n = x.shape
+    if temporal:
+        diag_t, sub1_t, sub2_t = _temporal_blocks(n_frames, problem.w_vel, problem.w_acc)
+    else:
+        diag_t = np.zeros((n_frames, n, n))
+        sub1_t, sub2_t = np.zeros((n_frames - 1, n, n)), np.zeros((max(n_frames - 2, 0), n, n))
+
+    def temporal_energy_grad(x):
+        if not temporal:
+            return 0.0, np.zeros_like(x)
+        grad = np.einsum("tij,tj->ti", diag_t, x)
+        grad[1:] += np.einsum("tij,tj->ti", sub1_t, x[:-1])
+        grad[:-1] += np.einsum("tji,tj->ti", sub1_t, x[1:])
+        grad[2:] += np.einsum("tij,tj->ti", sub2_t, x[:-2])
+        grad[:-2] += np.einsum("tji,tj->ti", sub2_t, x[2:])
+        return 0.5 * float((x * grad).sum()), grad
+
+    def align(x):
+        kp, jac = problem.keypoints(x)
+        res = kp - targets  # (T,K,3)
+        dist = np.linalg.norm(res, axis=-1)
+        if params.robust_delta_m > 0:
+            delta = params.robust_delta_m
+            rw = np.where(dist <= delta, 1.0, delta / np.maximum(dist, 1e-12))
+            rho = np.where(dist <= delta, dist**2, 2 * delta * dist - delta**2)
+        else:
+            rw, rho = np.ones_like(dist), dist**2
+        w = weights[:, None] * rw  # (T,K)
+        energy = float((weights[:, None] * rho).sum())
+        return energy, res, jac, w
+
+    mu, evaluations = 1e-3, 0
+    energy_a, res, jac, w = align(x)
+    energy_t, grad_t = temporal_energy_grad(x)
+    energy = energy_a + 2 * energy_t
+    eye = np.eye(n)
+    for _ in range(params.iterations):
+        jf = jac.reshape(n_frames, -1, n)  # (T, 3K, n)
+        jw = jf * np.repeat(w, 3, axis=1)[..., None]
+        hess = np.swapaxes(jw, 1, 2) @ jf  # (T, n, n)
+        grad = (np.swapaxes(jw, 1, 2) @ res.reshape(n_frames, -1, 1))[..., 0] + grad_t
+        # Active set: a variable on a bound that the gradient pushes outwards stays there.
+        at_bound = ((x <= problem.lower + 1e-12) & (grad > 0)) | ((x >= problem.upper - 1e-12) & (grad < 0))
+        at_bound[:fixed] = True
+        keep = (~at_bound).astype(np.float64)
+        diag = (hess + diag_t) * keep[:, :, None] * keep[:, None, :]
+        damping = mu * (1.0 + np.diagonal(hess, axis1=1, axis2=2))
+        diag += eye * np.where(at_bound, 1.0, damping)[:, None, :]
+        sub1 = sub1_t * keep[1:, :, None] * keep[:-1, None, :]
+        sub2 = sub2_t * keep[2:, :, None] * keep[:-2, None, :]
+        rhs = np.where(at_bound, 0.0, grad)
+        active = slice(fixed, n_frames)
+        ab = _to_banded(diag[active], sub1[fixed:], sub2[fixed:])
+        try:
+            step = -solveh_banded(ab, rhs[active].reshape(-1), lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            mu *= 10
+            continue
+        candidate = x.copy()
+        candidate[active] = problem.project(x[active] + step.reshape(-1, n))
+        evaluations += 1
+        e_a, r_c, j_c, w_c = align(candidate)
+        e_t, g_t = temporal_energy_grad(candidate)
+        new_energy = e_a + 2 * e_t
+        if new_energy < energy:
+            improvement = (energy - new_energy) / max(energy, 1e-18)
+            x, energy, res, jac, w, grad_t = candidate, new_energy, r_c, j_c, w_c, g_t
+            mu = max(mu / 5, 1e-9)
+            if improvement < params.tolerance:
+                break
+        else:
+            mu *= 5
+            if mu > 1e8:
+                break
+    return x, {"energy": energy, "evaluations": evaluations}
+
+
+def _global_search(problem: _Problem, x0: np.ndarray, target: np.ndarray,
+                   params: GlobalSearchParams) -> np.ndarray:
+    """nlopt global search of one frame's hand joints (base held), then returns free coords."""
+    import nlopt
+
+    hand_free = np.flatnonzero(problem.free >= 6)
+    lower, upper = problem.lower[hand_free], problem.upper[hand_free]
+    x = x0.copy()
+
+    def objective(values, grad):
+        x[hand_free] = values
+        kp = problem.hand.keypoints(torch.as_tensor(problem.full(x[None]), dtype=problem.hand.dtype))
+        return float(((kp[0].numpy() - target) ** 2).sum())
+
+    nlopt.srand(params.seed)
+    opt = nlopt.opt(getattr(nlopt, params.algorithm), len(hand_free))
+    opt.set_lower_bounds(lower)
+    opt.set_upper_bounds(upper)
+    opt.set_min_objective(objective)
+    opt.set_maxeval(params.max_evals)
+    with torch.no_grad():
+        best = opt.optimize(np.clip(x0[hand_free], lower, upper))
+    out = x0.copy()
+    out[hand_free] = best
+    return out
+
+
+def _initial_base(hand: RobotHand, human: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """(T, 6) floating-base coordinates from a rigid fit of palm keypoints, frame by frame."""
+    mano = np.asarray(hand.mano_indices)
+    palm = np.flatnonzero(np.isin(mano, _PALM_MANO))
+    use = palm if len(palm) >= 3 else np.arange(len(mano))
+    zero = hand.zero()
+    zero[:, :6] = 0.0
+    robot = hand.keypoints(zero)[0].detach().numpy()[use]
+    base = np.zeros((len(human), 6))
+    idx = np.flatnonzero(observed)
+    for t in idx:
+        fit = _kabsch(robot, human[t, mano[use]])
+        base[t, :3] = fit[:3, 3]
+        base[t, 3:] = Rotation.from_matrix(fit[:3, :3]).as_euler("XYZ")
+    if len(idx) == 0:
+        return base
+    # Unobserved frames: nearest observed frame; unwrap angles so the base moves continuously.
+    nearest = idx[np.abs(np.arange(len(human))[:, None] - idx[None]).argmin(axis=1)]
+    base = base[nearest]
+    base[:, 3:] = np.unwrap(base[:, 3:], axis=0)
+    return base
+
+
+def retarget_sequence(seq: Sequence, hand: RobotHand, params: RetargetParams) -> RetargetResult:
+    """Retarget one (scaled) sequence to ``hand``. See the module docstring for the method."""
+    start = time.perf_counter()
+    human_all = np.asarray(seq.keypoints, dtype=np.float64)
+    observed, lost = detect_bad_frames(seq, params.jump_threshold_m)
+    mano = np.asarray(hand.mano_indices)
+    human = np.nan_to_num(human_all[:, mano])
+    problem = _Problem(hand, params, seq.fps)
+    n_frames = len(human)
+
+    base = _initial_base(hand, human_all, observed)
+    x0 = np.tile(problem.project(hand.zero().numpy()[0][problem.free]), (n_frames, 1))
+    base_cols = np.flatnonzero(problem.free < 6)
+    x0[:, base_cols] = base[:, problem.free[base_cols]]
+    weights = observed.astype(np.float64)
+    stats = {"global_searches": 0, "recoveries": 0, "evaluations": 0}
+    mode = params.global_search.mode
+    if mode not in ("first_frame", "every_frame", "off"):
+        raise ValueError(f"retarget.global_search.mode: expected first_frame|every_frame|off, found {mode!r}")
+
+    if params.method == "position":
+        x = _solve_position(problem, x0, human, observed, params, stats)
+    elif params.method == "dexflow":
+        obs = np.flatnonzero(observed)
+        search = obs[:1] if mode == "first_frame" else obs if mode == "every_frame" else []
+        for t in search:
+            x0[t] = _global_search(problem, x0[t], human[t], params.global_search)
+            stats["global_searches"] += 1
+        if mode == "first_frame" and len(obs):
+            x0[:, problem.free >= 6] = x0[obs[0], problem.free >= 6]
+        x = _solve_dexflow(problem, x0, human, weights, params, stats)
+        x = _recover(problem, x, human, weights, observed, params, stats)
+    else:
+        raise ValueError(f"retarget.method: expected 'dexflow' or 'position', found {params.method!r}")
+
+    q = hand.clamp(torch.as_tensor(problem.full(x))).numpy()
+    with torch.no_grad():
+        robot = hand.keypoints(torch.as_tensor(q)).numpy()
+    error = np.linalg.norm(robot - human, axis=-1).mean(axis=-1)
+    error[~observed] = np.nan
+    stats["seconds"] = time.perf_counter() - start
+    return RetargetResult(q, list(hand.joint_names), robot, human, error, observed, lost, stats)
+
+
+def _solve_dexflow(problem, x0, human, weights, params, stats) -> np.ndarray:
+    n_frames = len(x0)
+    if params.window <= 0 or params.window >= n_frames:
+        x, info = _solve_lm(problem, x0, human, weights, 0, params, temporal=True)
+        stats["evaluations"] += info["evaluations"]
+        return x
+    x = x0.copy()
+    k = params.window
+    x[:k], info = _solve_lm(problem, x0[:k], human[:k], weights[:k], 0, params, temporal=True)
+    for t in range(k, n_frames):
+        lo = max(0, t - k + 1 - 2)  # two held frames give the window its velocity and acceleration
+        held = t - k + 1 - lo
+        init = x[lo : t + 1].copy()
+        init[-1] = x[t - 1]
+        sol, info = _solve_lm(problem, init, human[lo : t + 1], weights[lo : t + 1], held, params, True)
+        x[lo + held : t + 1] = sol[held:]
+        stats["evaluations"] += info["evaluations"]
+    return x
+
+
+def _recover(problem, x, human, weights, observed, params, stats) -> np.ndarray:
+    """Re-initialise frames whose error jumped (tracking lost) by global search; solve again."""
+    if params.global_search.mode == "off" or params.max_recoveries <= 0:
+        return x
+    kp, _ = problem.keypoints(x)
+    error = np.linalg.norm(kp - human, axis=-1).mean(axis=-1)
+    obs = np.flatnonzero(observed)
+    if len(obs) == 0:
+        return x
+    limit = max(params.recover_error_m, params.recover_factor * np.median(error[obs]))
+    bad = obs[error[obs] > limit][: params.max_recoveries]
+    if len(bad) == 0:
+        return x
+    x0 = x.copy()
+    for t in bad:
+        x0[t] = _global_search(problem, x[t], human[t], params.global_search)
+        stats["global_searches"] += 1
+    stats["recoveries"] += len(bad)
+    candidate = _solve_dexflow(problem, x0, human, weights, params, stats)
+    kp_c, _ = problem.keypoints(candidate)
+    better = np.linalg.norm(kp_c - human, axis=-1).mean(axis=-1)[obs].mean() < error[obs].mean()
+    return candidate if better else x
+
+
+def _solve_position(problem, x0, human, observed, params, stats) -> np.ndarray:
+    """Per-frame alignment (warm-started frame to frame); unobserved frames hold."""
+    x = x0.copy()
+    previous = None
+    for t in range(len(x)):
+        if not observed[t]:
+            if previous is not None:
+                x[t] = previous
+            continue
+        init = x0[t : t + 1].copy()
+        if previous is not None:
+            init[0, problem.free >= 6] = previous[problem.free >= 6]
+        sol, info = _solve_lm(problem, init, human[t : t + 1], np.ones(1), 0, params, temporal=False)
+        x[t] = previous = sol[0]
+        stats["evaluations"] += info["evaluations"]
+    if params.lowpass_hz > 0:
+        from scipy.signal import butter, filtfilt
+
+        nyquist = 0.5 / problem.dt
+        if params.lowpass_hz < nyquist and len(x) > 12:
+            b, a = butter(2, params.lowpass_hz / nyquist)
+            x = problem.project(filtfilt(b, a, x, axis=0))
+    return x
+
+
+def save_result(path: str | Path, result: RetargetResult, seq: Sequence) -> None:
+    """Write a result as ``.npz`` (q with joint names, keypoints, errors, masks, stats)."""
+    from dexflow.io.atomic import save_npz
+
+    save_npz(path, {
+        "q": result.q,
+        "joint_names": np.array(result.joint_names),
+        "keypoints_robot": result.keypoints_robot,
+        "keypoints_human": result.keypoints_human,
+        "keypoint_error_m": result.error_m,
+        "observed": result.observed,
+        "lost": result.lost,
+        "fps": np.array(seq.fps),
+        "global_searches": np.array(result.stats["global_searches"]),
+        "recoveries": np.array(result.stats["recoveries"]),
+        "evaluations": np.array(result.stats["evaluations"]),
+    })
