@@ -18,6 +18,7 @@ from omegaconf.errors import OmegaConfBaseException
 from dexflow.data.demo import DemoConfig
 from dexflow.errors import ConfigError
 from dexflow.hands.spec import HandSpec as HandParams
+from dexflow.retarget import RetargetParams
 
 __all__ = [
     "ConvexParams",
@@ -65,6 +66,21 @@ def _validate_demo(d: DemoConfig) -> None:
         "within [0, 1]",
         d.inside_fraction + d.hover_fraction,
     )
+
+
+def _validate_retarget(r: RetargetParams) -> None:
+    _require(r.method in ("dexflow", "position"), "retarget.method", "'dexflow' or 'position'", r.method)
+    modes = ("first_frame", "every_frame", "off")
+    _require(r.global_search.mode in modes, "retarget.global_search.mode", " | ".join(modes),
+             r.global_search.mode)
+    for key in ("alpha", "lambda_diff", "gamma_pred", "robust_delta_m", "lowpass_hz"):
+        _require(getattr(r, key) >= 0, f"retarget.{key}", ">= 0", getattr(r, key))
+    _require(r.window >= 0, "retarget.window", "0 (all frames) or a window length >= 1", r.window)
+    _require(r.iterations >= 1, "retarget.iterations", ">= 1", r.iterations)
+    import nlopt
+
+    _require(hasattr(nlopt, r.global_search.algorithm), "retarget.global_search.algorithm",
+             "an nlopt algorithm name such as GN_CRS2_LM", r.global_search.algorithm)
 
 
 @dataclass
@@ -136,6 +152,7 @@ class PipelineParams:
     data: DataParams = field(default_factory=DataParams)
     demo: DemoConfig = field(default_factory=DemoConfig)
     scale_align: ScaleAlignParams = field(default_factory=ScaleAlignParams)
+    retarget: RetargetParams = field(default_factory=RetargetParams)
     run: RunParams = field(default_factory=RunParams)
 
 
@@ -197,4 +214,5 @@ def load_params(path: str | Path = "params.yaml") -> PipelineParams:
         raise ConfigError(f"{path}: {exc}".strip()) from exc
     assert isinstance(params, PipelineParams)
     _validate_demo(params.demo)
+    _validate_retarget(params.retarget)
     return params
