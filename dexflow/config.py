@@ -69,18 +69,28 @@ def _validate_demo(d: DemoConfig) -> None:
 
 
 def _validate_retarget(r: RetargetParams) -> None:
-    _require(r.method in ("dexflow", "position"), "retarget.method", "'dexflow' or 'position'", r.method)
+    _require(
+        r.method in ("dexflow", "position"), "retarget.method", "'dexflow' or 'position'", r.method
+    )
     modes = ("first_frame", "every_frame", "off")
-    _require(r.global_search.mode in modes, "retarget.global_search.mode", " | ".join(modes),
-             r.global_search.mode)
+    _require(
+        r.global_search.mode in modes,
+        "retarget.global_search.mode",
+        " | ".join(modes),
+        r.global_search.mode,
+    )
     for key in ("alpha", "lambda_diff", "gamma_pred", "robust_delta_m", "lowpass_hz"):
         _require(getattr(r, key) >= 0, f"retarget.{key}", ">= 0", getattr(r, key))
     _require(r.window >= 0, "retarget.window", "0 (all frames) or a window length >= 1", r.window)
     _require(r.iterations >= 1, "retarget.iterations", ">= 1", r.iterations)
     import nlopt
 
-    _require(hasattr(nlopt, r.global_search.algorithm), "retarget.global_search.algorithm",
-             "an nlopt algorithm name such as GN_CRS2_LM", r.global_search.algorithm)
+    _require(
+        hasattr(nlopt, r.global_search.algorithm),
+        "retarget.global_search.algorithm",
+        "an nlopt algorithm name such as GN_CRS2_LM",
+        r.global_search.algorithm,
+    )
 
 
 @dataclass

@@ -39,7 +39,9 @@ def fingertip_speeds(tips: np.ndarray, fps: float, mask: np.ndarray | None = Non
     return speed[np.isfinite(speed)].reshape(-1)
 
 
-def velocity_kl(reference: np.ndarray, other: np.ndarray, bins: int = 30, eps: float = 1e-6) -> float:
+def velocity_kl(
+    reference: np.ndarray, other: np.ndarray, bins: int = 30, eps: float = 1e-6
+) -> float:
     """KL divergence KL(P_reference || P_other) of two speed histograms on shared bins.
 
     Bins span 0 to the 99th percentile of both samples pooled; each histogram gets ``eps``

@@ -65,6 +65,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 _PALM_MANO = (0, 1, 5, 9, 13, 17)
+_JUMP_WINDOW = 15  # frames of the running median; bursts up to 7 frames are outvoted
 
 
 @dataclass
@@ -82,9 +83,9 @@ class RetargetParams:
     """Stage ``retarget`` (``retarget`` in params.yaml). Weights are relative to metres²."""
 
     method: str = "dexflow"
-    alpha: float = 0.002
-    lambda_diff: float = 0.1
-    gamma_pred: float = 0.5
+    alpha: float = 0.0002
+    lambda_diff: float = 0.01
+    gamma_pred: float = 0.05
     window: int = 0
     base_sigma_m: float = 0.05
     base_sigma_rad: float = 0.5
@@ -128,7 +129,7 @@ def detect_bad_frames(seq: Sequence, jump_threshold_m: float) -> tuple[np.ndarra
     """Frames to leave unfitted: (observed (T,), lost (T,)).
 
     ``lost`` marks tracking loss that a tracker reports as valid: the wrist more than
-    ``jump_threshold_m`` from the running median of the wrist (7 frames), or a hand whose
+    ``jump_threshold_m`` from the running median of the wrist (15 frames), or a hand whose
     wrist-to-middle-MCP length departs by more than 30 % from the sequence median.
     """
     kp = np.asarray(seq.keypoints)
@@ -137,7 +138,7 @@ def detect_bad_frames(seq: Sequence, jump_threshold_m: float) -> tuple[np.ndarra
     idx = np.flatnonzero(valid)
     if len(idx) >= 3:
         wrist = kp[idx, 0]
-        reference = median_filter(wrist, size=(min(7, len(idx) | 1), 1), mode="nearest")
+        reference = median_filter(wrist, size=(min(_JUMP_WINDOW, len(idx) | 1), 1), mode="nearest")
         jump = np.linalg.norm(wrist - reference, axis=-1) > jump_threshold_m
         size = np.linalg.norm(kp[idx, 9] - kp[idx, 0], axis=-1)
         odd = np.abs(size / np.median(size) - 1.0) > 0.3
@@ -168,16 +169,25 @@ class _Problem:
         a = np.zeros((dof, len(self.free)))
         a[self.free, np.arange(len(self.free))] = 1.0
         b = np.zeros(dof)
-        for dep, lead, ratio, off in zip(hand._coupled.tolist(), hand._leader.tolist(),
-                                         hand._ratio.tolist(), hand._coupling_offset.tolist(),
-                                         strict=True):
+        for dep, lead, ratio, off in zip(
+            hand._coupled.tolist(),
+            hand._leader.tolist(),
+            hand._ratio.tolist(),
+            hand._coupling_offset.tolist(),
+            strict=True,
+        ):
             a[dep, np.flatnonzero(self.free == lead)[0]] = ratio
             b[dep] = off
         self.a, self.b = a, b
         lower, upper = hand.lower.numpy(), hand.upper.numpy()
         self.lower, self.upper = lower[self.free], upper[self.free]
-        sigma = np.concatenate([[params.base_sigma_m] * 3, [params.base_sigma_rad] * 3,
-                                np.maximum((upper[6:] - lower[6:]) / np.sqrt(12.0), 1e-3)])
+        sigma = np.concatenate(
+            [
+                [params.base_sigma_m] * 3,
+                [params.base_sigma_rad] * 3,
+                np.maximum((upper[6:] - lower[6:]) / np.sqrt(12.0), 1e-3),
+            ]
+        )
         inv_cov = np.diag(1.0 / sigma**2)
         # Temporal terms in free coordinates: velocity and acceleration weights (n x n).
         self.w_vel = params.alpha * a.T @ a
@@ -240,8 +250,15 @@ def _to_banded(diag, sub1, sub2) -> np.ndarray:
     return ab
 
 
-def _solve_lm(problem: _Problem, x0: np.ndarray, targets: np.ndarray, weights: np.ndarray,
-              fixed: int, params: RetargetParams, temporal: bool) -> tuple[np.ndarray, dict]:
+def _solve_lm(
+    problem: _Problem,
+    x0: np.ndarray,
+    targets: np.ndarray,
+    weights: np.ndarray,
+    fixed: int,
+    params: RetargetParams,
+    temporal: bool,
+) -> tuple[np.ndarray, dict]:
     """Projected Levenberg-Marquardt on frames ``fixed..T`` (earlier frames held).
 
     Args:
@@ -294,7 +311,9 @@ def _solve_lm(problem: _Problem, x0: np.ndarray, targets: np.ndarray, weights: n
         hess = np.swapaxes(jw, 1, 2) @ jf  # (T, n, n)
         grad = (np.swapaxes(jw, 1, 2) @ res.reshape(n_frames, -1, 1))[..., 0] + grad_t
         # Active set: a variable on a bound that the gradient pushes outwards stays there.
-        at_bound = ((x <= problem.lower + 1e-12) & (grad > 0)) | ((x >= problem.upper - 1e-12) & (grad < 0))
+        at_bound = ((x <= problem.lower + 1e-12) & (grad > 0)) | (
+            (x >= problem.upper - 1e-12) & (grad < 0)
+        )
         at_bound[:fixed] = True
         keep = (~at_bound).astype(np.float64)
         diag = (hess + diag_t) * keep[:, :, None] * keep[:, None, :]
@@ -329,8 +348,9 @@ def _solve_lm(problem: _Problem, x0: np.ndarray, targets: np.ndarray, weights: n
     return x, {"energy": energy, "evaluations": evaluations}
 
 
-def _global_search(problem: _Problem, x0: np.ndarray, target: np.ndarray,
-                   params: GlobalSearchParams) -> np.ndarray:
+def _global_search(
+    problem: _Problem, x0: np.ndarray, target: np.ndarray, params: GlobalSearchParams
+) -> np.ndarray:
     """nlopt global search of one frame's hand joints (base held), then returns free coords."""
     import nlopt
 
@@ -340,7 +360,9 @@ def _global_search(problem: _Problem, x0: np.ndarray, target: np.ndarray,
 
     def objective(values, grad):
         x[hand_free] = values
-        kp = problem.hand.keypoints(torch.as_tensor(problem.full(x[None]), dtype=problem.hand.dtype))
+        kp = problem.hand.keypoints(
+            torch.as_tensor(problem.full(x[None]), dtype=problem.hand.dtype)
+        )
         return float(((kp[0].numpy() - target) ** 2).sum())
 
     nlopt.srand(params.seed)
@@ -397,7 +419,9 @@ def retarget_sequence(seq: Sequence, hand: RobotHand, params: RetargetParams) ->
     stats = {"global_searches": 0, "recoveries": 0, "evaluations": 0}
     mode = params.global_search.mode
     if mode not in ("first_frame", "every_frame", "off"):
-        raise ValueError(f"retarget.global_search.mode: expected first_frame|every_frame|off, found {mode!r}")
+        raise ValueError(
+            f"retarget.global_search.mode: expected first_frame|every_frame|off, found {mode!r}"
+        )
 
     if params.method == "position":
         x = _solve_position(problem, x0, human, observed, params, stats)
@@ -412,7 +436,9 @@ def retarget_sequence(seq: Sequence, hand: RobotHand, params: RetargetParams) ->
         x = _solve_dexflow(problem, x0, human, weights, params, stats)
         x = _recover(problem, x, human, weights, observed, params, stats)
     else:
-        raise ValueError(f"retarget.method: expected 'dexflow' or 'position', found {params.method!r}")
+        raise ValueError(
+            f"retarget.method: expected 'dexflow' or 'position', found {params.method!r}"
+        )
 
     q = hand.clamp(torch.as_tensor(problem.full(x))).numpy()
     with torch.no_grad():
@@ -437,7 +463,9 @@ def _solve_dexflow(problem, x0, human, weights, params, stats) -> np.ndarray:
         held = t - k + 1 - lo
         init = x[lo : t + 1].copy()
         init[-1] = x[t - 1]
-        sol, info = _solve_lm(problem, init, human[lo : t + 1], weights[lo : t + 1], held, params, True)
+        sol, info = _solve_lm(
+            problem, init, human[lo : t + 1], weights[lo : t + 1], held, params, True
+        )
         x[lo + held : t + 1] = sol[held:]
         stats["evaluations"] += info["evaluations"]
     return x
@@ -479,7 +507,9 @@ def _solve_position(problem, x0, human, observed, params, stats) -> np.ndarray:
         init = x0[t : t + 1].copy()
         if previous is not None:
             init[0, problem.free >= 6] = previous[problem.free >= 6]
-        sol, info = _solve_lm(problem, init, human[t : t + 1], np.ones(1), 0, params, temporal=False)
+        sol, info = _solve_lm(
+            problem, init, human[t : t + 1], np.ones(1), 0, params, temporal=False
+        )
         x[t] = previous = sol[0]
         stats["evaluations"] += info["evaluations"]
     if params.lowpass_hz > 0:
@@ -496,19 +526,22 @@ def save_result(path: str | Path, result: RetargetResult, seq: Sequence) -> None
     """Write a result as ``.npz`` (q with joint names, keypoints, errors, masks, stats)."""
     from dexflow.io.atomic import save_npz
 
-    save_npz(path, {
-        "q": result.q,
-        "joint_names": np.array(result.joint_names),
-        "keypoints_robot": result.keypoints_robot,
-        "keypoints_human": result.keypoints_human,
-        "keypoint_error_m": result.error_m,
-        "observed": result.observed,
-        "lost": result.lost,
-        "fps": np.array(seq.fps),
-        "global_searches": np.array(result.stats["global_searches"]),
-        "recoveries": np.array(result.stats["recoveries"]),
-        "evaluations": np.array(result.stats["evaluations"]),
-    })
+    save_npz(
+        path,
+        {
+            "q": result.q,
+            "joint_names": np.array(result.joint_names),
+            "keypoints_robot": result.keypoints_robot,
+            "keypoints_human": result.keypoints_human,
+            "keypoint_error_m": result.error_m,
+            "observed": result.observed,
+            "lost": result.lost,
+            "fps": np.array(seq.fps),
+            "global_searches": np.array(result.stats["global_searches"]),
+            "recoveries": np.array(result.stats["recoveries"]),
+            "evaluations": np.array(result.stats["evaluations"]),
+        },
+    )
 
 
 _HANDS: dict[str, RobotHand] = {}
@@ -524,15 +557,16 @@ def _hand_for(spec, base_dir) -> RobotHand:
     return _HANDS[key]
 
 
-def _sequence_metrics(result: RetargetResult, hand: RobotHand, fps: float) -> dict:
+def _sequence_metrics(result: RetargetResult, hand: RobotHand, seq: Sequence) -> dict:
     from dexflow.human.keypoints import FINGERTIPS
     from dexflow.measures import fingertip_speeds, rms_acceleration, velocity_kl
 
+    fps = seq.fps
     tips = [i for i, m in enumerate(hand.mano_indices) if m in FINGERTIPS]
     observed = result.observed
     human = fingertip_speeds(result.keypoints_human[:, tips], fps, observed)
     robot = fingertip_speeds(result.keypoints_robot[:, tips], fps, observed)
-    return {
+    out = {
         "frames": len(result.q),
         "observed_frames": int(observed.sum()),
         "lost_frames": int(result.lost.sum()),
@@ -542,6 +576,14 @@ def _sequence_metrics(result: RetargetResult, hand: RobotHand, fps: float) -> di
         "global_searches": int(result.stats["global_searches"]),
         "recoveries": int(result.stats["recoveries"]),
     }
+    if "gt_keypoints" in seq.extras:  # generated data: compare with the clean, true hand too
+        truth = np.asarray(seq.extras["gt_keypoints"])[:, hand.mano_indices]
+        out["keypoint_error_gt_mm"] = float(
+            np.linalg.norm(result.keypoints_robot - truth, axis=-1).mean(axis=-1)[observed].mean()
+            * 1000
+        )
+        out["velocity_kl_gt"] = velocity_kl(fingertip_speeds(truth[:, tips], fps, observed), robot)
+    return out
 
 
 def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path) -> dict:
@@ -575,13 +617,15 @@ def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path)
         seq = load_sequence(path, data_root=in_root)
         result = retarget_sequence(seq, hand, rparams)
         save_result(out_root / "sequences" / path.name, result, seq)
-        return _sequence_metrics(result, hand, seq.fps)
+        return _sequence_metrics(result, hand, seq)
 
     start = time.perf_counter()
     results = map_items(one, files, params.run.jobs, f"retarget {method}")
     seconds = time.perf_counter() - start
     sequences = {
-        r.item.stem: ({"status": "ok", **r.value} if r.ok else {"status": "failed", "error": r.error})
+        r.item.stem: (
+            {"status": "ok", **r.value} if r.ok else {"status": "failed", "error": r.error}
+        )
         for r in results
     }
     ok = [s for s in sequences.values() if s["status"] == "ok"]
@@ -602,6 +646,11 @@ def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path)
         "keypoint_error_mm": mean("keypoint_error_mm"),
         "rms_joint_acc": mean("rms_joint_acc"),
         "velocity_kl": mean("velocity_kl"),
+        **(
+            {k: mean(k) for k in ("keypoint_error_gt_mm", "velocity_kl_gt")}
+            if ok and "velocity_kl_gt" in ok[0]
+            else {}
+        ),
         "sequences": dict(sorted(sequences.items())),
     }
     save_json(out_root / "summary.json", summary)

@@ -19,13 +19,31 @@ def main(argv: list[str]) -> int:
     params = load_params("params.yaml")
     summary = run_retarget(params, method, "data/scale_align", f"data/retarget/{method}")
     fps = summary["num_frames"] / summary["seconds"] if summary["seconds"] else float("nan")
-    metrics = {k: summary[k] for k in ("num_sequences", "num_ok", "num_failed", "num_frames",
-                                       "keypoint_error_mm", "rms_joint_acc", "velocity_kl")}
+    keys = (
+        "num_sequences",
+        "num_ok",
+        "num_failed",
+        "num_frames",
+        "keypoint_error_mm",
+        "rms_joint_acc",
+        "velocity_kl",
+        "keypoint_error_gt_mm",
+        "velocity_kl_gt",
+    )
+    metrics = {k: summary[k] for k in keys if k in summary}
     save_json(f"reports/metrics/retarget_{method}.json", {**metrics, "frames_per_second": fps})
-    logging.info("retarget %s: %d/%d sequences ok, %d frames, %.1f frames/s, error %.2f mm, "
-                 "RMS joint acc %.2f rad/s^2, velocity KL %.3f", method, summary["num_ok"],
-                 summary["num_sequences"], summary["num_frames"], fps,
-                 summary["keypoint_error_mm"], summary["rms_joint_acc"], summary["velocity_kl"])
+    logging.info(
+        "retarget %s: %d/%d sequences ok, %d frames, %.1f frames/s, error %.2f mm, "
+        "RMS joint acc %.2f rad/s^2, velocity KL %.3f",
+        method,
+        summary["num_ok"],
+        summary["num_sequences"],
+        summary["num_frames"],
+        fps,
+        summary["keypoint_error_mm"],
+        summary["rms_joint_acc"],
+        summary["velocity_kl"],
+    )
     for name, entry in summary["sequences"].items():
         if entry["status"] != "ok":
             logging.error("retarget %s: %s failed: %s", method, name, entry["error"])

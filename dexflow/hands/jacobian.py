@@ -34,8 +34,10 @@ class KeypointJacobian:
             offset = frame.link.offset
             if hand.model.format == "mjcf" and frame.joint.offset is not None:
                 if frame.joint.offset.get_matrix()[0, :3, 3].abs().max() > 1e-12:
-                    raise HandConfigError(f"joint '{name}' is offset from its body frame; "
-                                          "analytic Jacobians need joints at body origins")
+                    raise HandConfigError(
+                        f"joint '{name}' is offset from its body frame; "
+                        "analytic Jacobians need joints at body origins"
+                    )
             if hand.model.format == "urdf" and offset is not None:
                 if (offset.get_matrix()[0] - torch.eye(4, dtype=offset.dtype)).abs().max() > 1e-12:
                     raise HandConfigError(f"link of joint '{name}' has an offset after the joint")
@@ -50,7 +52,9 @@ class KeypointJacobian:
         self._joint_idx = torch.tensor([self._frames.index(n) for n in joint_frames])
         self._pk_indices = chain.get_frame_indices(*self._frames)
         ancestors = _ancestor_joints(hand)
-        mask = [[j in ancestors[link] for j in hand.hand_joint_names] for link in hand.keypoint_links]
+        mask = [
+            [j in ancestors[link] for j in hand.hand_joint_names] for link in hand.keypoint_links
+        ]
         self._mask = torch.tensor(mask, dtype=hand.dtype, device=hand.device)  # (K, J)
         self._offsets = hand._keypoint_offsets
 
@@ -73,13 +77,17 @@ class KeypointJacobian:
         origins = world_pos[:, self._joint_idx]
         lever = keypoints[:, :, None, :] - origins[:, None, :, :]  # (T, K, J, 3)
         cols = torch.cross(axes[:, None].expand_as(lever), lever, dim=-1)
-        cols = torch.where(self._prismatic[None, None, :, None], axes[:, None].expand_as(lever), cols)
+        cols = torch.where(
+            self._prismatic[None, None, :, None], axes[:, None].expand_as(lever), cols
+        )
         cols = cols * self._mask[None, :, :, None]
 
         t, k = keypoints.shape[:2]
         jac = torch.zeros(t, k, 3, hand.dof, dtype=q.dtype, device=q.device)
         jac[:, :, :, :3] = torch.eye(3, dtype=q.dtype, device=q.device)
-        base_axes = torch.stack([rx[:, :, 0], (rx @ ry)[:, :, 1], rot_base[:, :, 2]], dim=1)  # (T,3,3)
+        base_axes = torch.stack(
+            [rx[:, :, 0], (rx @ ry)[:, :, 1], rot_base[:, :, 2]], dim=1
+        )  # (T,3,3)
         arm = keypoints - pos_base[:, None]
         for i in range(3):
             jac[:, :, :, 3 + i] = torch.cross(base_axes[:, i, None].expand_as(arm), arm, dim=-1)
