@@ -95,3 +95,94 @@ def bench_fk(
                 f"{kp_rate / loop_rate:12.1f}x {mj}"
             )
     return rows
+
+
+def bench_retarget(
+    hand_name: str = "shadow",
+    data_root: str = "data/scale_align",
+    sequences: int = 6,
+    every_frame_frames: int = 20,
+) -> list[dict]:
+    """Retargeting throughput and accuracy on the same frames, one core, in one run.
+
+    Rows: DexFlow default (global search on the first frame), DexFlow without any global
+    search (the steady-state per-frame cost), DexFlow ``every_frame`` (the paper's exact
+    setting, on the first ``every_frame_frames`` frames of one sequence: about a second a
+    frame), and the position baseline. Ratios are against the baseline.
+    """
+    from dataclasses import replace
+    from pathlib import Path
+
+    from dexflow.config import load_params
+    from dexflow.hands.robot import load_hand
+    from dexflow.io.sequence import load_sequence
+    from dexflow.retarget import retarget_sequence
+
+    torch.set_num_threads(1)
+    files = sorted(Path(data_root).glob("sequences/*.npz"))
+    if not files:
+        raise FileNotFoundError(f"{data_root}: no sequences; run `dvc repro scale_align` first")
+    files = files[:: max(1, len(files) // sequences)][:sequences]
+    seqs = [load_sequence(f) for f in files]
+    hand = load_hand(hand_name)
+    params = load_params("params.yaml").retarget if Path("params.yaml").is_file() else None
+    if params is None:
+        from dexflow.retarget import RetargetParams
+
+        params = RetargetParams()
+    off = replace(params, global_search=replace(params.global_search, mode="off"))
+    every = replace(params, global_search=replace(params.global_search, mode="every_frame"))
+    short = [
+        replace(
+            seqs[0],
+            keypoints=seqs[0].keypoints[:every_frame_frames],
+            obj_pose=seqs[0].obj_pose[:every_frame_frames],
+            valid=None if seqs[0].valid is None else seqs[0].valid[:every_frame_frames],
+            gt_contact=None,
+            extras={},
+        )
+    ]
+    cases = [
+        ("dexflow (default: first_frame)", replace(params, method="dexflow"), seqs),
+        ("dexflow (global search off)", replace(off, method="dexflow"), seqs),
+        ("dexflow (every_frame)", replace(every, method="dexflow"), short),
+        ("position baseline", replace(off, method="position"), seqs),
+        ("position baseline (same frames)", replace(off, method="position"), short),
+    ]
+    rows = []
+    for label, p, batch in cases:
+        start = time.perf_counter()
+        results = [retarget_sequence(s, hand, p) for s in batch]
+        seconds = time.perf_counter() - start
+        frames = sum(len(s.keypoints) for s in batch)
+        error = float(np.nanmean(np.concatenate([r.error_m for r in results])) * 1000)
+        acc = float(
+            np.mean(
+                [
+                    np.sqrt(np.mean(np.diff(r.q[:, 6:], 2, axis=0) ** 2)) * batch[0].fps ** 2
+                    for r in results
+                ]
+            )
+        )
+        rows.append(
+            {
+                "case": label,
+                "frames": frames,
+                "fps": frames / seconds,
+                "ms_per_frame": 1000 * seconds / frames,
+                "error_mm": error,
+                "rms_acc": acc,
+            }
+        )
+    base = rows[3]["fps"]
+    print(f"hand {hand_name}, {len(seqs)} sequences ({rows[0]['frames']} frames), 1 thread")
+    print(
+        f"{'case':34s} {'frames':>6s} {'frames/s':>9s} {'ms/frame':>9s} {'vs baseline':>11s} "
+        f"{'error mm':>9s} {'RMS acc':>8s}"
+    )
+    for r in rows:
+        print(
+            f"{r['case']:34s} {r['frames']:6d} {r['fps']:9.1f} {r['ms_per_frame']:9.2f} "
+            f"{r['fps'] / base:10.2f}x {r['error_mm']:9.2f} {r['rms_acc']:8.2f}"
+        )
+    return rows

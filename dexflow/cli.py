@@ -6,7 +6,7 @@ Subcommands:
   demo OUT [--objects ...]          generate (part of) the demo dataset outside the pipeline
   hand check NAME|YAML [--png P]    validate a hand, print its kinematic tree, draw its zero pose
   hand export NAME|YAML OUT.urdf    write an MJCF hand as a URDF (for pybullet)
-  bench fk                          forward-kinematics throughput of every hand
+  bench fk | retarget               throughput benchmarks (frames/s against baselines)
 """
 
 from __future__ import annotations
@@ -94,9 +94,13 @@ def _cmd_hand_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from dexflow.bench import bench_fk
+    from dexflow.bench import bench_fk, bench_retarget
 
-    bench_fk(args.hands or None, repeats=args.repeats)
+    if args.what == "fk":
+        bench_fk(args.hands or None, repeats=args.repeats)
+    else:
+        for hand in args.hands or ["shadow"]:
+            bench_retarget(hand, sequences=args.sequences)
     return 0
 
 
@@ -136,9 +140,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_hand_export)
 
     p = sub.add_parser("bench", help="benchmarks (print frames/s)")
-    p.add_argument("what", choices=["fk"])
+    p.add_argument("what", choices=["fk", "retarget"])
     p.add_argument("--hands", nargs="*")
     p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--sequences", type=int, default=6, help="retarget: demo sequences to use")
     p.set_defaults(func=_cmd_bench)
     return parser
 

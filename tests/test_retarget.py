@@ -25,7 +25,11 @@ from .test_hands import _gripper
 @pytest.fixture(scope="module")
 def hands(tmp_path_factory):
     gripper = _gripper(tmp_path_factory.mktemp("gripper"))
-    return {"shadow": load_hand("shadow"), "allegro": load_hand("allegro"), "gripper": load_hand(gripper)}
+    return {
+        "shadow": load_hand("shadow"),
+        "allegro": load_hand("allegro"),
+        "gripper": load_hand(gripper),
+    }
 
 
 def _smooth_trajectory(hand, n_frames: int, seed: int) -> np.ndarray:
@@ -71,7 +75,9 @@ def test_round_trip_reaches_the_noise_floor(hands, name):
     err_truth = np.linalg.norm(result.keypoints_robot - truth, axis=-1).mean()
     assert err_truth < noise, err_truth
     assert np.nanmean(result.error_m) < 2.5 * noise
-    assert np.all(result.q >= hand.lower.numpy() - 1e-9) and np.all(result.q <= hand.upper.numpy() + 1e-9)
+    assert np.all(result.q >= hand.lower.numpy() - 1e-9) and np.all(
+        result.q <= hand.upper.numpy() + 1e-9
+    )
     # Where the keypoints determine them (fingertip chains), the joints come back.
     finger_joints = [j for idx in hand.fingers.values() for j in idx]
     joint_err = np.abs(result.q[:, finger_joints] - q_true[:, finger_joints])
@@ -166,7 +172,10 @@ def test_banded_temporal_matrix_equals_dense():
     w_vel, w_acc = a @ a.T, np.diag(rng.uniform(1, 2, n))
     diag, sub1, sub2 = _temporal_blocks(frames, w_vel, w_acc)
     d1 = np.zeros((frames - 1, frames))
-    d1[np.arange(frames - 1), np.arange(1, frames)], d1[np.arange(frames - 1), np.arange(frames - 1)] = 1, -1
+    (
+        d1[np.arange(frames - 1), np.arange(1, frames)],
+        d1[np.arange(frames - 1), np.arange(frames - 1)],
+    ) = 1, -1
     d2 = np.zeros((frames - 2, frames))
     for t in range(frames - 2):
         d2[t, t : t + 3] = [1, -2, 1]
