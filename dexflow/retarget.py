@@ -74,7 +74,7 @@ class GlobalSearchParams:
 
     mode: str = "first_frame"
     algorithm: str = "GN_CRS2_LM"
-    max_evals: int = 800
+    max_evals: int = 400
     seed: int = 0
 
 
@@ -235,18 +235,35 @@ def _temporal_blocks(n_frames: int, w_vel: np.ndarray, w_acc: np.ndarray, fixed:
     return diag, sub1, sub2
 
 
+_BAND_INDEX: dict[tuple[int, int], tuple[np.ndarray, ...]] = {}
+
+
+def _band_index(n_frames: int, n: int) -> tuple[np.ndarray, ...]:
+    """Cached scatter indices from (diag, sub1, sub2) blocks into lower banded storage."""
+    key = (n_frames, n)
+    if key not in _BAND_INDEX:
+        r, c = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+        parts = []
+        for offset, count in enumerate((n_frames, n_frames - 1, n_frames - 2)):
+            keep = (offset * n + r - c >= 0) if offset == 0 else np.ones_like(r, dtype=bool)
+            if count <= 0:
+                parts.append(None)
+                continue
+            rows = np.broadcast_to((offset * n + r - c)[keep], (count, int(keep.sum())))
+            cols = np.arange(count)[:, None] * n + c[keep][None]
+            parts.append((rows.reshape(-1), cols.reshape(-1), r[keep], c[keep]))
+        _BAND_INDEX[key] = tuple(parts)
+    return _BAND_INDEX[key]
+
+
 def _to_banded(diag, sub1, sub2) -> np.ndarray:
     """Lower banded storage (solveh_banded) of the symmetric block-pentadiagonal matrix."""
     n_frames, n, _ = diag.shape
     ab = np.zeros((3 * n, n_frames * n))
-    r, c = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    for offset, blocks in enumerate((diag, sub1, sub2)):
-        if len(blocks) == 0:
-            continue
-        keep = offset * n + r - c >= 0
-        rows = (offset * n + r - c)[keep]
-        cols = np.arange(len(blocks))[:, None] * n + c[keep][None]
-        ab[rows[None].repeat(len(blocks), 0), cols] = blocks[:, r[keep], c[keep]]
+    for blocks, part in zip((diag, sub1, sub2), _band_index(n_frames, n), strict=True):
+        if part is not None:
+            rows, cols, r, c = part
+            ab[rows, cols] = blocks[:, r, c].reshape(-1)
     return ab
 
 

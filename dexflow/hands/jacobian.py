@@ -52,10 +52,14 @@ class KeypointJacobian:
         self._joint_idx = torch.tensor([self._frames.index(n) for n in joint_frames])
         self._pk_indices = chain.get_frame_indices(*self._frames)
         ancestors = _ancestor_joints(hand)
-        mask = [
-            [j in ancestors[link] for j in hand.hand_joint_names] for link in hand.keypoint_links
+        pairs = [
+            (k, j)
+            for k, link in enumerate(hand.keypoint_links)
+            for j, name in enumerate(hand.hand_joint_names)
+            if name in ancestors[link]
         ]
-        self._mask = torch.tensor(mask, dtype=hand.dtype, device=hand.device)  # (K, J)
+        self._pair_k = torch.tensor([k for k, _ in pairs], dtype=torch.long)  # keypoint moved ...
+        self._pair_j = torch.tensor([j for _, j in pairs], dtype=torch.long)  # ... by this joint
         self._offsets = hand._keypoint_offsets
 
     def __call__(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -75,12 +79,11 @@ class KeypointJacobian:
 
         axes = (world_rot[:, self._joint_idx] @ self._axes[..., None])[..., 0]  # (T, J, 3)
         origins = world_pos[:, self._joint_idx]
-        lever = keypoints[:, :, None, :] - origins[:, None, :, :]  # (T, K, J, 3)
-        cols = torch.cross(axes[:, None].expand_as(lever), lever, dim=-1)
-        cols = torch.where(
-            self._prismatic[None, None, :, None], axes[:, None].expand_as(lever), cols
-        )
-        cols = cols * self._mask[None, :, :, None]
+        # Only (keypoint, joint) pairs where the joint is an ancestor of the keypoint's link.
+        pair_axes = axes[:, self._pair_j]  # (T, P, 3)
+        lever = keypoints[:, self._pair_k] - origins[:, self._pair_j]
+        cols = torch.cross(pair_axes, lever, dim=-1)
+        cols = torch.where(self._prismatic[self._pair_j][None, :, None], pair_axes, cols)
 
         t, k = keypoints.shape[:2]
         jac = torch.zeros(t, k, 3, hand.dof, dtype=q.dtype, device=q.device)
@@ -91,7 +94,7 @@ class KeypointJacobian:
         arm = keypoints - pos_base[:, None]
         for i in range(3):
             jac[:, :, :, 3 + i] = torch.cross(base_axes[:, i, None].expand_as(arm), arm, dim=-1)
-        jac[:, :, :, 6:] = cols.permute(0, 1, 3, 2)
+        jac[:, self._pair_k, :, 6 + self._pair_j] = cols.permute(1, 0, 2)  # advanced dims first
         return keypoints, jac
 
 

@@ -131,6 +131,7 @@ class RobotHand:
         offsets = torch.tensor([k.offset for k in spec.keypoints], dtype=dtype)
         self._keypoint_offsets = offsets.to(self.device)
         self._keypoint_frames = torch.tensor([self._frame_index[n] for n in self.keypoint_links])
+        self._keypoint_pk_indices = self.chain.get_frame_indices(*self.keypoint_links)
 
     # ------------------------------------------------------------------------------ surface
 
@@ -226,8 +227,13 @@ class RobotHand:
 
     def keypoints(self, q, transforms: torch.Tensor | None = None) -> torch.Tensor:
         """(B, K, 3) world positions of the keypoint links (plus offsets)."""
-        t = self.frame_transforms(q) if transforms is None else transforms
-        t = t[:, self._keypoint_frames]
+        if transforms is None:  # forward kinematics of the keypoint links only
+            q = self.as_q(q)
+            ret = self.chain.forward_kinematics(q[:, 6:], frame_indices=self._keypoint_pk_indices)
+            local = torch.stack([ret[name].get_matrix() for name in self.keypoint_links], dim=1)
+            t = base_transform(q[:, :6])[:, None] @ local
+        else:
+            t = transforms[:, self._keypoint_frames]
         return (t[..., :3, :3] @ self._keypoint_offsets[..., None])[..., 0] + t[..., :3, 3]
 
     def surface(
