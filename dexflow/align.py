@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -31,7 +30,7 @@ import numpy as np
 from dexflow.config import PipelineParams
 from dexflow.human.keypoints import FINGER_KEYPOINTS
 from dexflow.io.atomic import save_json, save_npz
-from dexflow.io.sequence import Sequence, load_sequence, save_sequence
+from dexflow.io.sequence import Sequence, load_sequence, save_sequence, stage_files
 from dexflow.objects.convex import convex_decomposition, write_convex_obj
 from dexflow.objects.mesh import load_mesh, write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
@@ -147,12 +146,7 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
         The summary, also written to ``out_root/summary.json``.
     """
     in_root, out_root = Path(in_root), Path(out_root)
-    files = sorted((in_root / "sequences").glob("*.npz"))
-    if not files:
-        raise FileNotFoundError(f"{in_root / 'sequences'}: no *.npz sequence files")
-    if out_root.exists():
-        shutil.rmtree(out_root)
-    out_root.mkdir(parents=True)
+    files = stage_files(in_root, out_root)
 
     mesh_of: dict[str, str | None] = {}
     errors: dict[str, str] = {}
@@ -178,9 +172,7 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
     seq_results = map_items(run_one, todo, n_jobs, "sequences")
     sequences = {stem: {"status": "failed", "error": e} for stem, e in errors.items()}
     for r in seq_results:
-        sequences[r.item.stem] = (
-            {"status": "ok", **r.value} if r.ok else {"status": "failed", "error": r.error}
-        )
+        sequences[r.item.stem] = r.entry()
     summary = {
         "stage": "scale_align",
         "hand": params.hand.name,
@@ -190,10 +182,7 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
         "num_failed": sum(s["status"] != "ok" for s in sequences.values()),
         "num_frames": int(sum(s.get("frames", 0) for s in sequences.values())),
         "sequences": dict(sorted(sequences.items())),
-        "objects": {
-            k: ({"status": "ok", **r.value} if r.ok else {"status": "failed", "error": r.error})
-            for k, r in sorted(objects.items())
-        },
+        "objects": {k: r.entry() for k, r in sorted(objects.items())},
     }
     save_json(out_root / "summary.json", summary)
     return summary

@@ -35,6 +35,12 @@ class ItemResult(Generic[T]):
     def ok(self) -> bool:
         return self.error is None
 
+    def entry(self) -> dict:
+        """Summary entry: ``{"status": "ok", **value}`` or ``{"status": "failed", "error": ...}``."""
+        if self.ok:
+            return {"status": "ok", **(self.value or {})}
+        return {"status": "failed", "error": self.error}
+
 
 def _run(func: Callable[[Any], T], item: Any) -> ItemResult[T]:
     try:

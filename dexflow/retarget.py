@@ -610,21 +610,15 @@ def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path)
         The summary (also ``out_root/summary.json``); ``seconds`` is wall-clock time and is
         returned, not written.
     """
-    import shutil
     from dataclasses import replace as dc_replace
 
     from dexflow.config import project_root
     from dexflow.io.atomic import save_json
-    from dexflow.io.sequence import load_sequence
+    from dexflow.io.sequence import load_sequence, stage_files
     from dexflow.parallel import map_items
 
     in_root, out_root = Path(in_root), Path(out_root)
-    files = sorted((in_root / "sequences").glob("*.npz"))
-    if not files:
-        raise FileNotFoundError(f"{in_root / 'sequences'}: no *.npz sequence files")
-    if out_root.exists():
-        shutil.rmtree(out_root)
-    (out_root / "sequences").mkdir(parents=True)
+    files = stage_files(in_root, out_root)
     rparams = dc_replace(params.retarget, method=method)
     spec, base_dir = params.hand, project_root() / "conf" / "hand"
 
@@ -639,12 +633,7 @@ def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path)
     start = time.perf_counter()
     results = map_items(one, files, params.run.jobs, f"retarget {method}")
     seconds = time.perf_counter() - start
-    sequences = {
-        r.item.stem: (
-            {"status": "ok", **r.value} if r.ok else {"status": "failed", "error": r.error}
-        )
-        for r in results
-    }
+    sequences = {r.item.stem: r.entry() for r in results}
     ok = [s for s in sequences.values() if s["status"] == "ok"]
     frames = sum(s["frames"] for s in ok)
 

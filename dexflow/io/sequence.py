@@ -29,6 +29,7 @@ __all__ = [
     "Sequence",
     "load_sequence",
     "save_sequence",
+    "stage_files",
     "validate_sequence",
 ]
 
@@ -307,3 +308,21 @@ def load_sequence(path: str | Path, data_root: str | Path | None = None) -> Sequ
         extras={k: v for k, v in arrays.items() if k not in _KNOWN_FIELDS},
     )
     return validate_sequence(seq, path, data_root)
+
+
+def stage_files(in_root: str | Path, out_root: str | Path) -> list[Path]:
+    """The sequence files a stage maps over, after emptying its output directory.
+
+    Raises:
+        FileNotFoundError: ``in_root/sequences`` holds no ``.npz`` file.
+    """
+    import shutil
+
+    in_root, out_root = Path(in_root), Path(out_root)
+    files = sorted((in_root / "sequences").glob("*.npz"))
+    if not files:
+        raise FileNotFoundError(f"{in_root / 'sequences'}: no *.npz sequence files")
+    if out_root.exists():
+        shutil.rmtree(out_root)
+    (out_root / "sequences").mkdir(parents=True)
+    return files
