@@ -47,25 +47,23 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy.linalg import solveh_banded
-from scipy.ndimage import median_filter
 from scipy.spatial.transform import Rotation
 
 from dexflow.hands.jacobian import KeypointJacobian
 from dexflow.hands.robot import RobotHand
+from dexflow.human.cleaning import detect_bad_frames
 from dexflow.io.sequence import Sequence
 
 __all__ = [
     "GlobalSearchParams",
     "RetargetParams",
     "RetargetResult",
-    "detect_bad_frames",
     "retarget_sequence",
 ]
 
 log = logging.getLogger(__name__)
 
 _PALM_MANO = (0, 1, 5, 9, 13, 17)
-_JUMP_WINDOW = 15  # frames of the running median; bursts up to 7 frames are outvoted
 
 
 @dataclass
@@ -123,27 +121,6 @@ class RetargetResult:
     observed: np.ndarray
     lost: np.ndarray
     stats: dict
-
-
-def detect_bad_frames(seq: Sequence, jump_threshold_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Frames to leave unfitted: (observed (T,), lost (T,)).
-
-    ``lost`` marks tracking loss that a tracker reports as valid: the wrist more than
-    ``jump_threshold_m`` from the running median of the wrist (15 frames), or a hand whose
-    wrist-to-middle-MCP length departs by more than 30 % from the sequence median.
-    """
-    kp = np.asarray(seq.keypoints)
-    valid = seq.valid_mask & np.isfinite(kp).all(axis=(1, 2))
-    lost = np.zeros(len(kp), dtype=bool)
-    idx = np.flatnonzero(valid)
-    if len(idx) >= 3:
-        wrist = kp[idx, 0]
-        reference = median_filter(wrist, size=(min(_JUMP_WINDOW, len(idx) | 1), 1), mode="nearest")
-        jump = np.linalg.norm(wrist - reference, axis=-1) > jump_threshold_m
-        size = np.linalg.norm(kp[idx, 9] - kp[idx, 0], axis=-1)
-        odd = np.abs(size / np.median(size) - 1.0) > 0.3
-        lost[idx[jump | odd]] = True
-    return valid & ~lost, lost
 
 
 def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -422,7 +399,7 @@ def retarget_sequence(seq: Sequence, hand: RobotHand, params: RetargetParams) ->
     """Retarget one (scaled) sequence to ``hand``. See the module docstring for the method."""
     start = time.perf_counter()
     human_all = np.asarray(seq.keypoints, dtype=np.float64)
-    observed, lost = detect_bad_frames(seq, params.jump_threshold_m)
+    observed, lost = detect_bad_frames(seq.keypoints, seq.valid, params.jump_threshold_m)
     mano = np.asarray(hand.mano_indices)
     human = np.nan_to_num(human_all[:, mano])
     problem = _Problem(hand, params, seq.fps)

@@ -10,12 +10,12 @@ import torch
 
 from dexflow.hands import load_hand
 from dexflow.hands.jacobian import KeypointJacobian
+from dexflow.human.cleaning import detect_bad_frames
 from dexflow.io.sequence import Sequence
 from dexflow.retarget import (
     RetargetParams,
     _temporal_blocks,
     _to_banded,
-    detect_bad_frames,
     retarget_sequence,
 )
 
@@ -109,7 +109,7 @@ def test_dropouts_and_teleports_are_bridged_not_fitted(hands):
     valid[10:13] = False
     kp[30:34] += [0.3, -0.2, 0.1]  # the tracker lost the hand: reported far away, still "valid"
     seq = replace(seq, keypoints=kp, valid=valid)
-    observed, lost = detect_bad_frames(seq, 0.08)
+    observed, lost = detect_bad_frames(seq.keypoints, seq.valid, 0.08)
     assert lost[30:34].all() and lost.sum() == 4
     assert not observed[10:13].any() and observed.sum() == 50 - 7
     params = RetargetParams()
