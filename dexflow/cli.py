@@ -4,6 +4,7 @@ Subcommands:
   params [OVERRIDE ...] [--check]   compose conf/ into params.yaml (as `dvc exp run` does)
   validate PATH [--data-root DIR]   check sequence files against the canonical format
   demo OUT [--objects ...]          generate (part of) the demo dataset outside the pipeline
+  convert ADAPTER SRC DST           dexycb | ho3d | grab | generic -> canonical sequences
   hand check NAME|YAML [--png P]    validate a hand, print its kinematic tree, draw its zero pose
   hand export NAME|YAML OUT.urdf    write an MJCF hand as a URDF (for pybullet)
   bench fk | retarget               throughput benchmarks (frames/s against baselines)
@@ -75,6 +76,32 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_convert(args: argparse.Namespace) -> int:
+    from dexflow.data.adapters import ConvertOptions, convert
+
+    options = ConvertOptions(
+        models=args.models,
+        mano=args.mano,
+        camera=args.camera,
+        fps=args.fps,
+        side=args.side,
+        jump_threshold_m=args.jump_threshold_m,
+    )
+    report = convert(args.adapter, args.src, args.dst, options)
+    for name, entry in report["sequences"].items():
+        if entry["status"] == "ok":
+            print(
+                f"ok   {name}: {entry['frames']} frames, {entry['missing_frames']} without a hand, "
+                f"{entry['tracking_lost_frames']} tracking lost, fingertip-to-surface median "
+                f"{entry['fingertip_to_surface_mm_median']:.1f} mm"
+                + (" (mirrored left hand)" if entry["mirrored"] else "")
+            )
+        else:
+            print(f"FAIL {name}: {entry['error']}")
+    print(f"{report['num_ok']}/{report['num_sequences']} sequences written to {args.dst}")
+    return 0 if report["num_ok"] == report["num_sequences"] and report["num_ok"] else 1
+
+
 def _cmd_hand_check(args: argparse.Namespace) -> int:
     from dexflow.hands.check import check_hand
 
@@ -126,6 +153,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=1)
     p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("convert", help="convert a dataset to dexflow's format")
+    p.add_argument("adapter", choices=["dexycb", "ho3d", "grab", "generic"])
+    p.add_argument("src")
+    p.add_argument("dst")
+    p.add_argument("--models", help="object models folder (default SRC/models)")
+    p.add_argument("--mano", help="your MANO model file or folder (only for MANO-only data)")
+    p.add_argument("--camera", help="DexYCB camera serial (default: the first)")
+    p.add_argument("--fps", type=float, help="frame rate where the data does not give it")
+    p.add_argument("--side", default="right", choices=["right", "left", "both"], help="GRAB hands")
+    p.add_argument(
+        "--jump-threshold-m", type=float, default=0.08, help="wrist jump = tracking lost"
+    )
+    p.set_defaults(func=_cmd_convert)
 
     hand = sub.add_parser("hand", help="inspect robot hands").add_subparsers(
         dest="hand_cmd", required=True

@@ -1,0 +1,436 @@
+"""Dataset adapters: DexYCB, HO-3D, GRAB and a generic format -> dexflow's canonical sequences.
+
+``dexflow convert <adapter> SRC DST`` writes ``DST/sequences/*.npz`` and ``DST/meshes/``.
+Every adapter then cleans the same way (:func:`write_sequence`):
+
+- frames without a hand (missing files, ``None`` or all ``-1`` joints, NaN) are kept as frames
+  with NaN keypoints and ``valid = False`` (masked, not dropped, so time stays uniform);
+- frames whose annotation is a default pose far from the rest of the sequence (an implausible
+  wrist jump, :func:`dexflow.human.cleaning.detect_bad_frames`) are masked the same way;
+- frames without an object pose hold the nearest annotated pose;
+- units are checked (hand size), left hands are mirrored to right ones with their object
+  (``mirrored = True``), and a sanity statistic is computed: the distance from the nearest
+  fingertip to the object surface, whose median should be a few millimetres for grasping data
+  (tens of millimetres mean the object pose and the keypoints are not in the same frame).
+
+Layouts (only the files dexflow reads are listed):
+
+- **DexYCB**: ``<subject>/<sequence>/meta.yml`` (``serials``, ``ycb_ids``, ``ycb_grasp_ind``,
+  ``mano_sides``, ``extrinsics``), ``<sequence>/<serial>/labels_%06d.npz`` (``joint_3d
+  (1, 21, 3)`` in that camera's frame, ``pose_y (n_obj, 3, 4)``),
+  ``calibration/extrinsics_<name>/extrinsics.yml`` (``extrinsics: {serial: 12 numbers}``, camera
+  to world, row-major 3x4), models ``models/<ycb name>/textured_simple.obj``. 30 fps.
+- **HO-3D**: ``<sequence>/meta/<frame>.pkl`` dicts with ``handJoints3D (21, 3)`` (HO-3D order),
+  ``objRot (3,)`` axis-angle, ``objTrans (3,)``, ``objName`` (e.g. ``025_mug``); optional
+  ``side``; optional MANO ``handPose (48,)``, ``handTrans (3,)``, ``handBeta (10,)`` used with
+  ``--mano`` where the joints are missing. Models ``<models>/<objName>/textured_simple.obj``.
+- **GRAB**: ``*.npz`` (pickled dicts, as GRAB ships them): ``framerate``, ``object`` with
+  ``params: {transl (T, 3), global_orient (T, 3)}`` and ``object_mesh`` (path relative to SRC),
+  ``rhand`` / ``lhand`` with ``joints (T, 21, 3)`` (MANO order) or, with ``--mano``,
+  ``params: {global_orient (T, 3), hand_pose (T, 45 or PCA), transl (T, 3)}`` and ``betas``.
+- **generic**: ``<name>.npz`` with ``keypoints (T, 21, 3)``, ``obj_pose (T, 4, 4)`` or
+  ``obj_rotvec`` + ``obj_trans (T, 3)``, ``obj_mesh`` (relative to SRC), and optional ``fps``,
+  ``side``, ``valid``, ``units`` (m | cm | mm), ``keypoint_order`` (mano | ho3d); or
+  ``<name>.csv`` with columns ``kp<i>_x, kp<i>_y, kp<i>_z`` (i = 0..20),
+  ``obj_rx, obj_ry, obj_rz`` (axis-angle), ``obj_tx, obj_ty, obj_tz`` (empty cells = no hand)
+  and a sidecar ``<name>.json`` with ``obj_mesh``, ``fps`` and the optional fields above.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import pickle
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from dexflow.data.mirror import mirror_mesh, mirror_sequence
+from dexflow.errors import DexflowError, SequenceFormatError
+from dexflow.human.cleaning import detect_bad_frames
+from dexflow.human.keypoints import FINGERTIPS
+from dexflow.human.mano import MANO_TO_DEXFLOW, ManoModel, load_mano
+from dexflow.io.atomic import save_json
+from dexflow.io.sequence import Sequence, save_sequence
+from dexflow.objects.mesh import load_mesh, write_obj
+from dexflow.objects.sdf import signed_distance
+
+__all__ = ["ADAPTERS", "ConvertOptions", "DatasetLayoutError", "RawSequence", "convert"]
+
+log = logging.getLogger(__name__)
+
+# YCB-Video's 21 objects, the ids DexYCB's meta.yml uses (1-based).
+YCB_CLASSES = (
+    "002_master_chef_can", "003_cracker_box", "004_sugar_box", "005_tomato_soup_can",
+    "006_mustard_bottle", "007_tuna_fish_can", "008_pudding_box", "009_gelatin_box",
+    "010_potted_meat_can", "011_banana", "019_pitcher_base", "021_bleach_cleanser", "024_bowl",
+    "025_mug", "035_power_drill", "036_wood_block", "037_scissors", "040_large_marker",
+    "051_large_clamp", "052_extra_large_clamp", "061_foam_brick",
+)  # fmt: skip
+HO3D_TO_DEXFLOW = MANO_TO_DEXFLOW  # HO-3D stores MANO's joint order with tips appended
+_UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+
+
+class DatasetLayoutError(DexflowError, ValueError):
+    """A source dataset misses a file or a field the adapter needs (the message names it)."""
+
+
+@dataclass
+class ConvertOptions:
+    """Options of ``dexflow convert`` (and ``conf/data/<adapter>.yaml``).
+
+    Attributes:
+        models: Directory of object models (DexYCB, HO-3D); default ``SRC/models``.
+        mano: MANO model file, or a directory with ``MANO_RIGHT.pkl`` / ``MANO_LEFT.pkl``.
+        camera: DexYCB camera serial (default: the first in ``meta.yml``).
+        fps: Frame rate where the data does not say (HO-3D, generic CSV without it).
+        side: GRAB hand(s) to convert: right, left or both.
+        jump_threshold_m: Wrist jump (from the running median) that marks tracking loss.
+    """
+
+    models: str | None = None
+    mano: str | None = None
+    camera: str | None = None
+    fps: float | None = None
+    side: str = "right"
+    jump_threshold_m: float = 0.08
+
+
+@dataclass
+class RawSequence:
+    """What an adapter reads, before cleaning (world frame of the source, metres).
+
+    ``keypoints (T, 21, 3)`` in dexflow's order with NaN where there is no hand;
+    ``obj_pose (T, 4, 4)`` with NaN where the object is not annotated.
+    """
+
+    name: str
+    keypoints: np.ndarray
+    obj_pose: np.ndarray
+    mesh_path: Path
+    obj_name: str
+    fps: float
+    side: str
+    source: str
+
+
+def _need(path: Path, what: str) -> Path:
+    if not path.exists():
+        raise DatasetLayoutError(f"{path}: missing {what}")
+    return path
+
+
+def _field(data, key: str, where: Path | str):
+    try:
+        return data[key]
+    except (KeyError, IndexError, TypeError):
+        raise DatasetLayoutError(f"{where}: missing field '{key}'") from None
+
+
+def _pose(rot, trans) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = np.asarray(rot, dtype=np.float64).reshape(3, 3) if np.size(rot) == 9 else (
+        Rotation.from_rotvec(np.asarray(rot, dtype=np.float64).reshape(3)).as_matrix()
+    )
+    out[:3, 3] = np.asarray(trans, dtype=np.float64).reshape(3)
+    return out
+
+
+def _mano_for(options: ConvertOptions, side: str) -> ManoModel:
+    if not options.mano:
+        raise DatasetLayoutError("joints are missing and only MANO parameters exist: pass "
+                                 "--mano <your MANO_RIGHT.pkl / MANO_LEFT.pkl or their folder>")
+    path = Path(options.mano)
+    if path.is_dir():
+        path = path / f"MANO_{side.upper()}.pkl"
+    return load_mano(path)
+
+
+# ------------------------------------------------------------------------------------- DexYCB
+
+
+def _read_yaml(path: Path):
+    import yaml
+
+    with open(_need(path, "file")) as handle:
+        return yaml.safe_load(handle)
+
+
+def _dexycb(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
+    metas = sorted(src.glob("*/*/meta.yml"))
+    if not metas:
+        raise DatasetLayoutError(f"{src}: no <subject>/<sequence>/meta.yml (DexYCB layout)")
+    models = Path(options.models) if options.models else src / "models"
+    for meta_path in metas:
+        meta = _read_yaml(meta_path)
+        seq_dir = meta_path.parent
+        serials = [str(s) for s in _field(meta, "serials", meta_path)]
+        serial = options.camera or serials[0]
+        ycb_ids = _field(meta, "ycb_ids", meta_path)
+        grasp = int(_field(meta, "ycb_grasp_ind", meta_path))
+        side = str(_field(meta, "mano_sides", meta_path)[0])
+        calib = src / "calibration" / f"extrinsics_{_field(meta, 'extrinsics', meta_path)}" / "extrinsics.yml"
+        extr = _field(_read_yaml(calib), "extrinsics", calib)
+        cam_to_world = np.eye(4)
+        cam_to_world[:3] = np.asarray(_field(extr, serial, calib), dtype=np.float64).reshape(3, 4)
+        labels = sorted(_need(seq_dir / serial, f"camera folder of serial {serial}").glob("labels_*.npz"))
+        if not labels:
+            raise DatasetLayoutError(f"{seq_dir / serial}: no labels_*.npz files")
+        frames = [int(p.stem.split("_")[1]) for p in labels]
+        n_frames = max(frames) + 1
+        kp = np.full((n_frames, 21, 3), np.nan)
+        pose = np.full((n_frames, 4, 4), np.nan)
+        for frame, path in zip(frames, labels, strict=True):
+            with np.load(path) as data:
+                joints = np.asarray(_field(data, "joint_3d", path), dtype=np.float64).reshape(21, 3)
+                objects = np.asarray(_field(data, "pose_y", path), dtype=np.float64)
+            if not np.all(joints == -1):
+                kp[frame] = joints @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
+            if len(objects) > grasp and np.isfinite(objects[grasp]).all() and objects[grasp].any():
+                pose[frame] = cam_to_world @ np.vstack([objects[grasp], [0, 0, 0, 1]])
+        name = YCB_CLASSES[int(ycb_ids[grasp]) - 1]
+        mesh = models / name / "textured_simple.obj"
+        yield RawSequence(f"{seq_dir.parent.name}_{seq_dir.name}", kp, pose, mesh, name,
+                          options.fps or 30.0, side, "dexycb")
+
+
+# -------------------------------------------------------------------------------------- HO-3D
+
+
+def _ho3d(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
+    seq_dirs = sorted(p.parent for p in src.glob("*/meta"))
+    if not seq_dirs:
+        raise DatasetLayoutError(f"{src}: no <sequence>/meta/ folders (HO-3D layout)")
+    models = Path(options.models) if options.models else src / "models"
+    for seq_dir in seq_dirs:
+        files = sorted((seq_dir / "meta").glob("*.pkl"))
+        if not files:
+            raise DatasetLayoutError(f"{seq_dir / 'meta'}: no <frame>.pkl files")
+        frames = [int(p.stem) for p in files]
+        first, n_frames = min(frames), max(frames) - min(frames) + 1
+        kp = np.full((n_frames, 21, 3), np.nan)
+        pose = np.full((n_frames, 4, 4), np.nan)
+        names, side, mano_frames = set(), "right", {}
+        for frame, path in zip(frames, files, strict=True):
+            with open(path, "rb") as handle:
+                meta = pickle.load(handle, encoding="latin1")
+            t = frame - first
+            side = str(meta.get("side", side))
+            joints = meta.get("handJoints3D")
+            if joints is not None and np.size(joints) == 63:
+                kp[t] = np.asarray(joints, dtype=np.float64).reshape(21, 3)[list(HO3D_TO_DEXFLOW)]
+            elif meta.get("handPose") is not None:
+                mano_frames[t] = meta
+            rot, trans = meta.get("objRot"), meta.get("objTrans")
+            if rot is not None and trans is not None:
+                pose[t] = _pose(rot, trans)
+            if meta.get("objName") is not None:
+                names.add(str(meta["objName"]))
+        if mano_frames:
+            model = _mano_for(options, side)
+            ts = sorted(mano_frames)
+            hand_pose = np.stack([np.asarray(mano_frames[t]["handPose"], dtype=np.float64) for t in ts])
+            betas = np.asarray(mano_frames[ts[0]].get("handBeta", np.zeros(10)), dtype=np.float64)
+            trans = np.stack([np.asarray(mano_frames[t].get("handTrans", np.zeros(3))) for t in ts])
+            kp[ts] = model.joints(hand_pose[:, :3], hand_pose[:, 3:], betas, trans)
+        if len(names) != 1:
+            raise DatasetLayoutError(f"{seq_dir}: expected one 'objName' in the frames, found {sorted(names)}")
+        name = names.pop()
+        yield RawSequence(seq_dir.name, kp, pose, models / name / "textured_simple.obj", name,
+                          options.fps or 30.0, side, "ho3d")
+
+
+# --------------------------------------------------------------------------------------- GRAB
+
+
+def _grab(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
+    files = sorted(src.rglob("*.npz"))
+    if not files:
+        raise DatasetLayoutError(f"{src}: no *.npz GRAB sequences")
+    sides = ("right", "left") if options.side == "both" else (options.side,)
+    for path in files:
+        with np.load(path, allow_pickle=True) as data:
+            raw = {k: data[k].item() if data[k].dtype == object and data[k].shape == () else data[k]
+                   for k in data.files}
+        fps = float(_field(raw, "framerate", path))
+        obj = _field(raw, "object", path)
+        params = _field(obj, "params", f"{path}: object")
+        transl = np.asarray(_field(params, "transl", f"{path}: object.params"), dtype=np.float64)
+        orient = np.asarray(_field(params, "global_orient", f"{path}: object.params"), dtype=np.float64)
+        pose = np.repeat(np.eye(4)[None], len(transl), axis=0)
+        pose[:, :3, :3] = Rotation.from_rotvec(orient).as_matrix()
+        pose[:, :3, 3] = transl
+        mesh = src / str(_field(obj, "object_mesh", f"{path}: object"))
+        for side in sides:
+            hand = _field(raw, "rhand" if side == "right" else "lhand", path)
+            if "joints" in hand:
+                kp = np.asarray(hand["joints"], dtype=np.float64)
+            else:
+                hp = _field(hand, "params", f"{path}: {side} hand")
+                model = _mano_for(options, side)
+                kp = model.joints(_field(hp, "global_orient", path), _field(hp, "hand_pose", path),
+                                  hand.get("betas"), _field(hp, "transl", path))
+            name = f"{path.parent.name}_{path.stem}" + ("" if len(sides) == 1 else f"_{side}")
+            yield RawSequence(name, kp, pose, mesh, mesh.stem, fps, side, "grab")
+
+
+# ------------------------------------------------------------------------------------ generic
+
+
+def _generic(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
+    files = sorted([*src.glob("*.npz"), *src.glob("*.csv")])
+    if not files:
+        raise DatasetLayoutError(f"{src}: no <name>.npz or <name>.csv sequences (generic layout)")
+    for path in files:
+        if path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as data:
+                fields = {k: data[k] for k in data.files}
+            kp = np.asarray(_field(fields, "keypoints", path), dtype=np.float64)
+        else:
+            fields = json.loads(_need(path.with_suffix(".json"), "sidecar .json (obj_mesh, fps)").read_text())
+            import pandas as pd
+
+            table = pd.read_csv(path)
+            cols = [f"kp{i}_{c}" for i in range(21) for c in "xyz"]
+            missing = [c for c in [*cols, "obj_rx", "obj_ry", "obj_rz", "obj_tx", "obj_ty", "obj_tz"]
+                       if c not in table]
+            if missing:
+                raise DatasetLayoutError(f"{path}: missing columns {missing[:6]}{'...' if len(missing) > 6 else ''}")
+            kp = table[cols].to_numpy(dtype=np.float64).reshape(-1, 21, 3)
+            fields["obj_rotvec"] = table[["obj_rx", "obj_ry", "obj_rz"]].to_numpy(dtype=np.float64)
+            fields["obj_trans"] = table[["obj_tx", "obj_ty", "obj_tz"]].to_numpy(dtype=np.float64)
+        units = str(fields.get("units", "m"))
+        if units not in _UNITS:
+            raise DatasetLayoutError(f"{path}: units '{units}'; expected one of {list(_UNITS)}")
+        scale = _UNITS[units]
+        order = str(fields.get("keypoint_order", "mano"))
+        if order not in ("mano", "ho3d"):
+            raise DatasetLayoutError(f"{path}: keypoint_order '{order}'; expected 'mano' or 'ho3d'")
+        if order == "ho3d":
+            kp = kp[:, list(HO3D_TO_DEXFLOW)]
+        if "obj_pose" in fields:
+            pose = np.asarray(fields["obj_pose"], dtype=np.float64).copy()
+        else:
+            rotvec = np.asarray(_field(fields, "obj_rotvec", path), dtype=np.float64)
+            trans = np.asarray(_field(fields, "obj_trans", path), dtype=np.float64)
+            pose = np.repeat(np.eye(4)[None], len(rotvec), axis=0)
+            good = np.isfinite(rotvec).all(axis=1) & np.isfinite(trans).all(axis=1)
+            pose[good, :3, :3] = Rotation.from_rotvec(rotvec[good]).as_matrix()
+            pose[:, :3, 3] = trans
+            pose[~good] = np.nan
+        pose[:, :3, 3] *= scale
+        if "valid" in fields:
+            kp[~np.asarray(fields["valid"], dtype=bool)] = np.nan
+        fps = float(fields.get("fps", options.fps or 0.0))
+        if fps <= 0:
+            raise DatasetLayoutError(f"{path}: no 'fps' in the file and no --fps given")
+        mesh = src / str(_field(fields, "obj_mesh", path))
+        yield RawSequence(path.stem, kp * scale, pose, mesh, mesh.stem, fps,
+                          str(fields.get("side", "right")), "generic")
+
+
+ADAPTERS: dict[str, Callable[[Path, ConvertOptions], Iterator[RawSequence]]] = {
+    "dexycb": _dexycb,
+    "ho3d": _ho3d,
+    "grab": _grab,
+    "generic": _generic,
+}
+
+
+# ----------------------------------------------------------------------------------- cleaning
+
+
+def _hold_nearest(pose: np.ndarray) -> np.ndarray:
+    good = np.isfinite(pose).all(axis=(1, 2))
+    if not good.any():
+        raise DatasetLayoutError("the object pose is not annotated in any frame")
+    idx = np.flatnonzero(good)
+    nearest = idx[np.abs(np.arange(len(pose))[:, None] - idx[None]).argmin(axis=1)]
+    return pose[nearest]
+
+
+def fingertip_surface_distance(seq: Sequence, mesh, frames: int = 40) -> np.ndarray:
+    """Per sampled valid frame, the smallest fingertip-to-surface signed distance (metres)."""
+    valid = np.flatnonzero(seq.valid_mask & np.isfinite(seq.keypoints).all(axis=(1, 2)))
+    if len(valid) == 0:
+        return np.zeros(0)
+    chosen = valid[np.linspace(0, len(valid) - 1, min(frames, len(valid))).astype(int)]
+    inv = np.linalg.inv(seq.obj_pose[chosen])
+    tips = seq.keypoints[chosen][:, list(FINGERTIPS)]
+    local = np.einsum("tij,tkj->tki", inv[:, :3, :3], tips) + inv[:, None, :3, 3]
+    return signed_distance(mesh, local).min(axis=1)
+
+
+def write_sequence(raw: RawSequence, dst: Path, options: ConvertOptions) -> dict:
+    """Clean, mirror (left hands), validate and save one sequence; return its report."""
+    kp = np.array(raw.keypoints, dtype=np.float64)
+    missing = ~np.isfinite(kp).all(axis=(1, 2))
+    kp[missing] = np.nan
+    observed, lost = detect_bad_frames(kp, None, options.jump_threshold_m)
+    kp[lost] = np.nan
+    valid = observed.copy()
+    if not valid.any():
+        raise DatasetLayoutError(f"{raw.name}: no frame has a usable hand")
+    mesh = load_mesh(_need(raw.mesh_path, f"object model of '{raw.obj_name}'"))
+    mesh_rel = f"meshes/{raw.obj_name}.obj"
+    if not (dst / mesh_rel).exists():
+        write_obj(dst / mesh_rel, mesh)
+    seq = Sequence(keypoints=kp, obj_pose=_hold_nearest(raw.obj_pose), obj_mesh=mesh_rel,
+                   obj_name=raw.obj_name, fps=raw.fps, side=raw.side, source=raw.source,
+                   valid=valid)
+    if raw.side == "left":
+        mesh = mirror_mesh(mesh)
+        mirrored_rel = f"meshes/{raw.obj_name}_mirrored.obj"
+        if not (dst / mirrored_rel).exists():
+            write_obj(dst / mirrored_rel, mesh)
+        seq = mirror_sequence(seq, mirrored_rel)
+    elif raw.side != "right":
+        raise DatasetLayoutError(f"{raw.name}: side '{raw.side}'; expected 'right' or 'left'")
+    path = dst / "sequences" / f"{raw.source}_{raw.name}.npz"
+    save_sequence(path, seq, data_root=dst)
+    gap = fingertip_surface_distance(seq, mesh)
+    report = {
+        "frames": int(len(kp)),
+        "missing_frames": int(missing.sum()),
+        "tracking_lost_frames": int(lost.sum()),
+        "mirrored": raw.side == "left",
+        "fingertip_to_surface_mm_median": float(np.median(gap) * 1000) if len(gap) else None,
+        "fingertip_to_surface_mm_p90": float(np.percentile(gap, 90) * 1000) if len(gap) else None,
+    }
+    if len(gap) and np.median(gap) > 0.03:
+        log.warning("%s: nearest fingertip is %.0f mm from the object surface (median): is the "
+                    "object pose in the same frame as the keypoints?", raw.name, np.median(gap) * 1000)
+    return report
+
+
+def convert(adapter: str, src: str | Path, dst: str | Path, options: ConvertOptions | None = None) -> dict:
+    """Convert a dataset; one bad sequence is reported and the others are written.
+
+    Returns:
+        The report, also written to ``DST/convert.json``.
+    """
+    if adapter not in ADAPTERS:
+        raise DatasetLayoutError(f"unknown adapter '{adapter}'; known: {sorted(ADAPTERS)}")
+    options = options or ConvertOptions()
+    src, dst = Path(src), Path(dst)
+    _need(src, "source dataset folder")
+    (dst / "sequences").mkdir(parents=True, exist_ok=True)
+    sequences: dict[str, dict] = {}
+    for raw in ADAPTERS[adapter](src, options):
+        try:
+            sequences[raw.name] = {"status": "ok", **write_sequence(raw, dst, options)}
+        except (DexflowError, SequenceFormatError) as exc:
+            sequences[raw.name] = {"status": "failed", "error": str(exc)}
+            log.error("%s: %s", raw.name, exc)
+    report = {
+        "adapter": adapter,
+        "source": str(src),
+        "num_sequences": len(sequences),
+        "num_ok": sum(s["status"] == "ok" for s in sequences.values()),
+        "sequences": sequences,
+    }
+    save_json(dst / "convert.json", report)
+    return report
