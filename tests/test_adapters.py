@@ -376,5 +376,5 @@ def test_bad_layouts_name_the_missing_file_or_field(tmp_path, breakage, words):
 def test_unknown_adapter_and_empty_source(tmp_path):
     with pytest.raises(DatasetLayoutError, match="known"):
         convert("nope", tmp_path, tmp_path / "out")
-    with pytest.raises(DatasetLayoutError, match="meta.yml"):
+    with pytest.raises(DatasetLayoutError, match=r"meta\.yml"):
         convert("dexycb", tmp_path, tmp_path / "out")
