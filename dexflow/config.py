@@ -15,6 +15,7 @@ from typing import Any
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from dexflow.contact import ContactParams
 from dexflow.data.demo import DemoConfig
 from dexflow.errors import ConfigError
 from dexflow.hands.spec import HandSpec as HandParams
@@ -163,6 +164,7 @@ class PipelineParams:
     demo: DemoConfig = field(default_factory=DemoConfig)
     scale_align: ScaleAlignParams = field(default_factory=ScaleAlignParams)
     retarget: RetargetParams = field(default_factory=RetargetParams)
+    contact: ContactParams = field(default_factory=ContactParams)
     run: RunParams = field(default_factory=RunParams)
 
 
@@ -225,4 +227,12 @@ def load_params(path: str | Path = "params.yaml") -> PipelineParams:
     assert isinstance(params, PipelineParams)
     _validate_demo(params.demo)
     _validate_retarget(params.retarget)
+    c = params.contact
+    _require(
+        0 <= c.dis_min_m <= c.dis_max_m,
+        "contact.dis_min_m/dis_max_m",
+        "0 <= dis_min_m <= dis_max_m",
+        (c.dis_min_m, c.dis_max_m),
+    )
+    _require(c.map_points >= 1, "contact.map_points", ">= 1", c.map_points)
     return params

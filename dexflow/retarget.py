@@ -50,7 +50,7 @@ from scipy.linalg import solveh_banded
 from scipy.spatial.transform import Rotation
 
 from dexflow.hands.jacobian import KeypointJacobian
-from dexflow.hands.robot import RobotHand
+from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.human.cleaning import detect_bad_frames
 from dexflow.io.sequence import Sequence
 
@@ -538,19 +538,6 @@ def save_result(path: str | Path, result: RetargetResult, seq: Sequence) -> None
     )
 
 
-_HANDS: dict[str, RobotHand] = {}
-
-
-def _hand_for(spec, base_dir) -> RobotHand:
-    """One RobotHand per process and spec (joblib workers reuse it across sequences)."""
-    from omegaconf import OmegaConf
-
-    key = OmegaConf.to_yaml(OmegaConf.structured(spec)) + str(base_dir)
-    if key not in _HANDS:
-        _HANDS[key] = RobotHand(spec, base_dir)
-    return _HANDS[key]
-
-
 def _sequence_metrics(result: RetargetResult, hand: RobotHand, seq: Sequence) -> dict:
     from dexflow.human.keypoints import FINGERTIPS
     from dexflow.measures import fingertip_speeds, rms_acceleration, velocity_kl
@@ -601,7 +588,7 @@ def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path)
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
-        hand = _hand_for(spec, base_dir)
+        hand = cached_hand(spec, base_dir)
         seq = load_sequence(path, data_root=in_root)
         result = retarget_sequence(seq, hand, rparams)
         save_result(out_root / "sequences" / path.name, result, seq)

@@ -62,6 +62,9 @@ def test_repro_then_noop_then_only_the_changed_stage(project):
     summary = json.loads((project / "data/scale_align/summary.json").read_text())
     assert summary["num_ok"] == summary["num_sequences"] == 2
     assert json.loads((project / "reports/metrics/demo.json").read_text())["sequences"] == 2
+    for stage in ("retarget/dexflow", "retarget/position", "contact"):
+        done = json.loads((project / "data" / stage / "summary.json").read_text())
+        assert done["num_ok"] == done["num_sequences"] == 2, stage
 
     again = _run(["dvc", "repro"], project)
     assert "Running stage" not in again

@@ -19,7 +19,7 @@ from dexflow.errors import HandConfigError
 from dexflow.hands.model import KinematicModel, load_kinematic_model, resolve_model_path
 from dexflow.hands.spec import HandSpec, load_hand_spec
 
-__all__ = ["BASE_JOINT_NAMES", "RobotHand", "load_hand"]
+__all__ = ["BASE_JOINT_NAMES", "RobotHand", "cached_hand", "load_hand"]
 
 BASE_JOINT_NAMES = (
     "dummy_x_translation",
@@ -260,3 +260,16 @@ def load_hand(
     """Build a :class:`RobotHand` from a hand name in ``conf/hand`` or a yaml path."""
     spec, base_dir = load_hand_spec(name_or_path, conf_dir)
     return RobotHand(spec, base_dir, dtype=dtype, device=device)
+
+
+_CACHE: dict[str, RobotHand] = {}
+
+
+def cached_hand(spec: HandSpec, base_dir: str | Path | None) -> RobotHand:
+    """One :class:`RobotHand` per process and spec (stage workers reuse it across sequences)."""
+    from omegaconf import OmegaConf
+
+    key = OmegaConf.to_yaml(OmegaConf.structured(spec)) + str(base_dir)
+    if key not in _CACHE:
+        _CACHE[key] = RobotHand(spec, base_dir)
+    return _CACHE[key]
