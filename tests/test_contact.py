@@ -77,3 +77,29 @@ def test_finger_distances_sign_on_a_box_with_a_hole():
     assert per_finger[0, fingers.index("ring")] == pytest.approx(dist[0, idx].min())
     with torch.no_grad():
         assert len(hand.surface(q)[0][0]) == dist.shape[1]
+
+
+def test_contact_sequence_writes_a_consistent_contact_map(tmp_path):
+    """A hand touching a box: the map pairs contact-finger points with surface points."""
+    from dexflow.contact import _contact_map, _finger_masks, contact_states
+
+    hand = load_hand("allegro")
+    q = hand.zero(4).numpy()
+    tip = hand.link_transforms(hand.zero(), ["link_3.0_tip"])[0, 0, :3, 3].numpy()
+    box = trimesh.creation.box(extents=(0.04, 0.04, 0.04))
+    sdf = SignedDistanceGrid.from_mesh(box, spacing=0.002)
+    pose = np.repeat(np.eye(4)[None], 4, axis=0)
+    pose[:, :3, 3] = tip + [0.0, 0.0, 0.02 + 0.004]  # the box 4 mm beyond the index tip
+    per_finger, dist, local = finger_distances(hand, q, pose, sdf)
+    raw, final = contact_states(per_finger, 30.0, P)
+    index = list(hand.spec.fingers).index("index")
+    assert final[:, index].all() and final.sum() == 4  # only the index finger, every frame
+    points, face = trimesh.sample.sample_surface(box, 2000, seed=0)
+    from scipy.spatial import cKDTree
+
+    cmap = _contact_map(
+        local, dist, final, _finger_masks(hand), cKDTree(points), box.face_normals[face], 5
+    )
+    assert set(cmap["map_finger"].tolist()) == {index} and len(cmap["map_frame"]) == 4 * 5
+    assert np.abs(sdf.query(cmap["map_object_point"])).max() < 2e-3  # on the surface
+    assert np.linalg.norm(cmap["map_hand_point"] - cmap["map_object_point"], axis=1).max() < 0.012
