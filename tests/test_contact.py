@@ -89,9 +89,9 @@ def test_contact_sequence_writes_a_consistent_contact_map(tmp_path):
     box = trimesh.creation.box(extents=(0.04, 0.04, 0.04))
     sdf = SignedDistanceGrid.from_mesh(box, spacing=0.002)
     pose = np.repeat(np.eye(4)[None], 4, axis=0)
-    pose[:, :3, 3] = tip + [0.0, 0.0, 0.02 + 0.004]  # the box 4 mm beyond the index tip
+    pose[:, :3, 3] = tip + np.array([0.0, 0.0, 0.024])  # the box face 4 mm beyond the index tip
     per_finger, dist, local = finger_distances(hand, q, pose, sdf)
-    raw, final = contact_states(per_finger, 30.0, P)
+    _, final = contact_states(per_finger, 30.0, P)
     index = list(hand.spec.fingers).index("index")
     assert final[:, index].all() and final.sum() == 4  # only the index finger, every frame
     points, face = trimesh.sample.sample_surface(box, 2000, seed=0)
