@@ -19,6 +19,7 @@ from dexflow.contact import ContactParams
 from dexflow.data.demo import DemoConfig
 from dexflow.errors import ConfigError
 from dexflow.hands.spec import HandSpec as HandParams
+from dexflow.refine import RefineParams
 from dexflow.retarget import RetargetParams
 
 __all__ = [
@@ -165,6 +166,7 @@ class PipelineParams:
     scale_align: ScaleAlignParams = field(default_factory=ScaleAlignParams)
     retarget: RetargetParams = field(default_factory=RetargetParams)
     contact: ContactParams = field(default_factory=ContactParams)
+    refine: RefineParams = field(default_factory=RefineParams)
     run: RunParams = field(default_factory=RunParams)
 
 
@@ -235,4 +237,9 @@ def load_params(path: str | Path = "params.yaml") -> PipelineParams:
         (c.dis_min_m, c.dis_max_m),
     )
     _require(c.map_points >= 1, "contact.map_points", ">= 1", c.map_points)
+    r = params.refine
+    unknown = sorted(set(r.finger_order) - {"thumb", "index", "middle", "ring", "little"})
+    _require(not unknown, "refine.finger_order", "finger names thumb..little", unknown)
+    for key in ("w_dis", "w_pen", "w_align", "w_spen", "w_joints", "w_smooth", "learning_rate"):
+        _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
     return params

@@ -225,6 +225,16 @@ class RobotHand:
         local = torch.stack([ret[name].get_matrix() for name in names], dim=1)
         return base_transform(q[:, :6])[:, None] @ local
 
+    def surface_points(self, q, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """World points (B, P, 3) and normals of the surface points ``index (P,)`` only."""
+        t = self.frame_transforms(q)
+        frame_of_link = torch.tensor([self._frame_index[n] for n in self.surface_links])
+        t = t[:, frame_of_link[self._surface_link[index]]]  # (B, P, 4, 4)
+        rot = t[..., :3, :3]
+        points = (rot @ self._surface_local[index, :, None])[..., 0] + t[..., :3, 3]
+        normals = (rot @ self._surface_normals[index, :, None])[..., 0]
+        return points, normals
+
     def keypoints(self, q, transforms: torch.Tensor | None = None) -> torch.Tensor:
         """(B, K, 3) world positions of the keypoint links (plus offsets)."""
         if transforms is None:  # forward kinematics of the keypoint links only
