@@ -34,7 +34,14 @@ import torch
 from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.objects.sdf import SignedDistanceGrid
 
-__all__ = ["RefineParams", "TorchSDF", "hand_object_measures", "refine_trajectory", "run_refine"]
+__all__ = [
+    "RefineParams",
+    "TorchSDF",
+    "energy_terms",
+    "hand_object_measures",
+    "refine_trajectory",
+    "run_refine",
+]
 
 
 @dataclass
@@ -158,6 +165,44 @@ def refine_trajectory(
     return q, energy_before, energy_after
 
 
+def energy_terms(
+    hand: RobotHand,
+    q: torch.Tensor,
+    finger_idx: torch.Tensor,
+    world_to_obj: torch.Tensor,
+    contacts: tuple,
+    spen_rows: torch.Tensor,
+    fixed_others: torch.Tensor,
+    sdf: TorchSDF,
+    spen_delta_m: float,
+) -> dict[str, torch.Tensor]:
+    """Unweighted energies (B,) of one finger at configurations ``q (B, dof)``.
+
+    Args:
+        finger_idx: (P,) the finger's surface points (indices into the hand's surface points).
+        world_to_obj: (B, 4, 4) inverse object poses.
+        contacts: (rows, point, object_points, object_normals): per contact pair its frame row
+            (into the batch), its point (into ``finger_idx``), and the object point and outward
+            normal in the object frame.
+        spen_rows: (S,) finger points (into ``finger_idx``) checked against ``fixed_others``.
+        fixed_others: (B, O, 3) other fingers' and palm points, world.
+    """
+    rows, hand_rows, obj_pts, obj_nrm = contacts
+    points, normals = hand.surface_points(hand.apply_couplings(q), finger_idx)
+    local = _to_object(points, world_to_obj)
+    normals_obj = normals @ world_to_obj[:, :3, :3].transpose(1, 2)
+    zero = torch.zeros(len(q), dtype=q.dtype)
+    dis, align = zero, zero
+    if len(rows):
+        p, n = local[rows, hand_rows], normals_obj[rows, hand_rows]
+        dis = zero.index_add(0, rows, ((p - obj_pts) ** 2).sum(-1))
+        align = zero.index_add(0, rows, (1 + (n * obj_nrm).sum(-1)) ** 2)
+    pen = (torch.relu(-sdf(local)) ** 2).sum(-1)
+    d = torch.cdist(points[:, spen_rows], fixed_others)
+    spen = torch.relu(spen_delta_m - d).sum((-1, -2))
+    return {"dis": dis, "pen": pen, "align": align, "spen": spen}
+
+
 def _refine_finger(
     hand, q, name, contact, cmap, inv, sdf, params, rng, energy_before, energy_after
 ) -> None:
@@ -202,23 +247,21 @@ def _refine_finger(
     triples = np.flatnonzero(frames[2:] - frames[:-2] == 2) if len(frames) > 2 else []
     consecutive = torch.as_tensor(triples, dtype=torch.long)  # t, t+1, t+2 all refined
 
+    contacts = (rows, hand_rows, obj_pts, obj_nrm)
+    weights = {
+        "dis": params.w_dis,
+        "pen": params.w_pen,
+        "align": params.w_align,
+        "spen": params.w_spen,
+    }
+
     def energy(theta, per_frame=False):
         qf = base.clone()
         qf[:, joints] = theta
-        qf = hand.apply_couplings(qf)
-        points, normals = hand.surface_points(qf, finger_idx)
-        local = _to_object(points, inv_f)
-        normals_obj = normals @ inv_f[:, :3, :3].transpose(1, 2)
-        e = torch.zeros(len(frames), dtype=hand.dtype)
-        if len(rows):
-            p = local[rows, hand_rows]
-            n = normals_obj[rows, hand_rows]
-            e = e.index_add(0, rows, params.w_dis * ((p - obj_pts) ** 2).sum(-1))
-            e = e.index_add(0, rows, params.w_align * (1 + (n * obj_nrm).sum(-1)) ** 2)
-        sd = sdf(local)
-        e = e + params.w_pen * (torch.relu(-sd) ** 2).sum(-1)
-        d = torch.cdist(points[:, spen_rows], fixed_others)
-        e = e + params.w_spen * torch.relu(params.spen_delta_m - d).sum((-1, -2))
+        terms = energy_terms(
+            hand, qf, finger_idx, inv_f, contacts, spen_rows, fixed_others, sdf, params.spen_delta_m
+        )
+        e = sum(weights[k] * v for k, v in terms.items())
         e = e + params.w_joints * ((theta - theta0) ** 2).sum(-1)
         if per_frame:
             return e

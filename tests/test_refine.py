@@ -1,0 +1,131 @@
+"""Refinement: penetration removed, hovering contact closed, no-contact fingers still, gradients."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+
+from dexflow.contact import _contact_map, _finger_masks, finger_distances
+from dexflow.hands import load_hand
+from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.refine import RefineParams, TorchSDF, energy_terms, refine_trajectory
+
+FRAMES = 3
+
+
+@pytest.fixture(scope="module")
+def allegro():
+    return load_hand("allegro")
+
+
+def _scene(hand, gap_m: float):
+    """A box whose face is ``gap_m`` from the index fingertip's pad (negative: the pad is inside).
+
+    The box sits on the palm side of the pad (the tip frame's +x), where flexing moves it."""
+    q = hand.zero(FRAMES)
+    q[:, hand.joint_names.index("joint_1.0")] = 0.3  # index slightly flexed, room both ways
+    tip_frame = hand.link_transforms(q[:1], ["link_3.0_tip"])[0, 0].numpy()
+    box = trimesh.creation.box(extents=(0.04, 0.04, 0.04))
+    grid = SignedDistanceGrid.from_mesh(box, spacing=0.002)
+    pose = np.repeat(np.eye(4)[None], FRAMES, axis=0)
+    sphere_centre = tip_frame[:3, 3] - 0.012 * tip_frame[:3, 2]  # rounded tip: r = 12 mm
+    pose[:, :3, 3] = sphere_centre + tip_frame[:3, 0] * (0.012 + gap_m + 0.02)
+    pose[:, :3, :3] = tip_frame[:3, :3]
+    return q.numpy(), pose, box, grid
+
+
+def _index_distance(hand, q, pose, grid):
+    per_finger, _, _ = finger_distances(hand, q, pose, grid)
+    return per_finger[:, list(hand.spec.fingers).index("index")]
+
+
+def _refine(hand, q, pose, box, grid, contact):
+    _, dist, local = finger_distances(hand, q, pose, grid)
+    points, faces = trimesh.sample.sample_surface(box, 4000, seed=0)
+    cmap = _contact_map(
+        local, dist, contact, _finger_masks(hand), cKDTree(points), box.face_normals[faces], 8
+    )
+    params = RefineParams(blend_frames=0.0, iterations=80)
+    q1, e0, e1 = refine_trajectory(hand, q, pose, TorchSDF(grid), contact, cmap, params)
+    return q1, e0, e1
+
+
+@pytest.mark.parametrize(("gap", "label"), [(-0.005, "5 mm inside"), (0.008, "hovering 8 mm away")])
+def test_contact_finger_is_brought_to_the_surface(allegro, gap, label):
+    q, pose, box, grid = _scene(allegro, gap)
+    before = _index_distance(allegro, q, pose, grid)
+    assert np.allclose(before, gap, atol=0.0025), (label, before)
+    contact = np.zeros((FRAMES, 4), dtype=bool)
+    contact[:, list(allegro.spec.fingers).index("index")] = True
+    q1, e0, e1 = _refine(allegro, q, pose, box, grid, contact)
+    after = _index_distance(allegro, q1, pose, grid)
+    assert np.all(np.abs(after) < 0.0015), (label, after)  # on the surface, not in it
+    assert np.all(e1 < e0)
+    lo, hi = allegro.lower.numpy(), allegro.upper.numpy()
+    assert np.all(q1 >= lo - 1e-12) and np.all(q1 <= hi + 1e-12)
+    # Only the index finger's joints moved.
+    moved = np.flatnonzero(np.abs(q1 - q).max(axis=0) > 1e-12)
+    assert set(moved) <= set(allegro.fingers["index"]) and len(moved) > 0
+
+
+def test_finger_without_contact_does_not_move(allegro):
+    q, pose, box, grid = _scene(allegro, -0.005)
+    contact = np.zeros((FRAMES, 4), dtype=bool)  # nobody in contact: nothing to refine
+    q1, _, _ = _refine(allegro, q, pose, box, grid, contact)
+    np.testing.assert_array_equal(q1, q)
+
+
+def test_energy_gradients_match_finite_differences(allegro):
+    q, pose, box, grid = _scene(allegro, -0.003)
+    hand = allegro
+    fingers = list(hand.spec.fingers)
+    mine = np.isin(np.asarray(hand.surface_point_links), hand.spec.fingers["index"].links)
+    finger_idx = torch.as_tensor(np.flatnonzero(mine))
+    others = np.flatnonzero(~mine)[::10]
+    with torch.no_grad():
+        fixed_others, _ = hand.surface_points(torch.as_tensor(q), torch.as_tensor(others))
+    rows = torch.tensor([0, 0, 1, 2])
+    hand_rows = torch.tensor([0, 5, 7, 9])
+    obj_pts = torch.tensor(
+        [[0.0, 0.0, -0.02], [0.005, 0.0, -0.02], [0.0, 0.01, -0.02], [0.0, 0.0, -0.02]],
+        dtype=torch.float64,
+    )
+    obj_nrm = torch.tensor([[0.0, 0.0, -1.0]] * 4, dtype=torch.float64)
+    inv = torch.as_tensor(np.linalg.inv(pose))
+    sdf = TorchSDF(grid)
+    joints = hand.fingers["index"]
+    spen_rows = torch.arange(0, int(mine.sum()), 7)
+
+    def terms(theta):
+        qf = torch.as_tensor(q).clone()
+        qf[:, joints] = theta
+        return energy_terms(
+            hand,
+            qf,
+            finger_idx,
+            inv,
+            (rows, hand_rows, obj_pts, obj_nrm),
+            spen_rows,
+            fixed_others,
+            sdf,
+            0.02,
+        )
+
+    theta = torch.as_tensor(q[:, joints]).clone()
+    values = terms(theta)
+    assert values["pen"].sum() > 0 and values["dis"].sum() > 0 and values["spen"].sum() > 0
+    for name in ("dis", "pen", "align", "spen"):
+        t = theta.clone().requires_grad_(True)
+        (grad,) = torch.autograd.grad(terms(t)[name].sum(), t)
+        eps = 1e-6
+        fd = torch.zeros_like(theta)
+        for i in range(theta.shape[0]):
+            for j in range(theta.shape[1]):
+                d = torch.zeros_like(theta)
+                d[i, j] = eps
+                fd[i, j] = (terms(theta + d)[name].sum() - terms(theta - d)[name].sum()) / (2 * eps)
+        torch.testing.assert_close(grad, fd, atol=1e-5, rtol=1e-3, msg=name)
+    assert fingers.index("index") == 1
