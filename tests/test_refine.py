@@ -79,7 +79,7 @@ def test_finger_without_contact_does_not_move(allegro):
 
 
 def test_energy_gradients_match_finite_differences(allegro):
-    q, pose, box, grid = _scene(allegro, -0.003)
+    q, pose, _, grid = _scene(allegro, -0.003)
     hand = allegro
     fingers = list(hand.spec.fingers)
     mine = np.isin(np.asarray(hand.surface_point_links), hand.spec.fingers["index"].links)
