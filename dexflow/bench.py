@@ -186,3 +186,59 @@ def bench_retarget(
             f"{r['fps'] / base:10.2f}x {r['error_mm']:9.2f} {r['rms_acc']:8.2f}"
         )
     return rows
+
+
+def bench_refine(
+    hand_name: str = "shadow", sequences: int = 4, loop_frames: int = 20
+) -> list[dict]:
+    """Refinement throughput on demo sequences, one core: batched over frames (the stage) against
+    the same frames refined one frame at a time, measured in the same run. Needs `dvc repro`."""
+    from pathlib import Path
+
+    from dexflow.config import load_params
+    from dexflow.hands.robot import load_hand
+    from dexflow.io.sequence import load_sequence
+    from dexflow.objects.sdf import SignedDistanceGrid
+    from dexflow.refine import TorchSDF, refine_trajectory
+
+    torch.set_num_threads(1)
+    params = load_params("params.yaml").refine
+    hand = load_hand(hand_name)
+    files = sorted(Path("data/refine/sequences").glob("*.npz"))
+    if not files:
+        raise FileNotFoundError("data/refine: no sequences; run `dvc repro` first")
+    files = files[:: max(1, len(files) // sequences)][:sequences]
+    jobs = []
+    for path in files:
+        seq = load_sequence(
+            Path("data/scale_align/sequences") / path.name, data_root="data/scale_align"
+        )
+        q0 = np.load(Path("data/retarget/dexflow/sequences") / path.name)["q"]
+        with np.load(Path("data/contact/sequences") / path.name) as data:
+            contact, cmap = data["final"], {k: data[k] for k in data.files if k.startswith("map_")}
+        sdf = TorchSDF(
+            SignedDistanceGrid.load((Path("data/scale_align") / seq.obj_mesh).parent / "sdf.npz")
+        )
+        jobs.append((q0, seq.obj_pose, sdf, contact, cmap))
+
+    start = time.perf_counter()
+    for q0, pose, sdf, contact, cmap in jobs:
+        refine_trajectory(hand, q0, pose, sdf, contact, cmap, params)
+    batched = sum(len(j[0]) for j in jobs) / (time.perf_counter() - start)
+
+    q0, pose, sdf, contact, cmap = jobs[0]
+    frames = np.flatnonzero(contact.any(axis=1))[:loop_frames]
+    start = time.perf_counter()
+    for t in frames:
+        sel = cmap["map_frame"] == t
+        one = {k: v[sel] for k, v in cmap.items()}
+        one["map_frame"] = np.zeros(sel.sum(), dtype=int)
+        refine_trajectory(
+            hand, q0[t : t + 1], pose[t : t + 1], sdf, contact[t : t + 1], one, params
+        )
+    looped = len(frames) / (time.perf_counter() - start)
+    print(f"hand {hand_name}, {sum(len(j[0]) for j in jobs)} frames, 1 thread")
+    print(f"refine batched over frames: {batched:8.1f} frames/s")
+    print(f"refine one frame at a time: {looped:8.1f} frames/s ({len(frames)} frames in contact)")
+    print(f"batched / one at a time:    {batched / looped:8.1f}x")
+    return [{"batched_fps": batched, "looped_fps": looped}]
