@@ -147,14 +147,9 @@ def finger_distances(
     local = np.einsum("tij,tnj->tni", inv[:, :3, :3], points) + inv[:, None, :3, 3]
     dist = sdf.query(local)
     per_finger = np.stack(
-        [np.where(m, dist, np.inf).min(axis=1) for m in _finger_masks(hand)], axis=1
+        [np.where(m, dist, np.inf).min(axis=1) for m in hand.finger_point_masks.values()], axis=1
     )
     return per_finger, dist, local
-
-
-def _finger_masks(hand: RobotHand) -> list[np.ndarray]:
-    links = np.asarray(hand.surface_point_links)
-    return [np.isin(links, fs.links) for fs in hand.spec.fingers.values()]
 
 
 def contact_states(distance, fps, params: ContactParams, guard: np.ndarray | None = None):
@@ -227,7 +222,7 @@ def contact_sequence(hand, retarget_file: Path, aligned_file: Path, aligned_root
     with np.load(obj_dir / "surface.npz") as surface:
         tree, normals = cKDTree(surface["points"]), surface["normals"]
     distance, dist, local = finger_distances(hand, q, seq.obj_pose, sdf)
-    masks = _finger_masks(hand)
+    masks = list(hand.finger_point_masks.values())
     closest = np.stack(
         [local[np.arange(len(q)), np.where(m, dist, np.inf).argmin(axis=1)] for m in masks], 1
     )

@@ -112,8 +112,7 @@ def hand_object_measures(
         points, _ = hand.surface(qt)
         inv = torch.as_tensor(np.linalg.inv(obj_pose), dtype=hand.dtype)
         sd = sdf(_to_object(points, inv)).numpy()
-    links = np.asarray(hand.surface_point_links)
-    masks = [np.isin(links, fs.links) for fs in hand.spec.fingers.values()]
+    masks = list(hand.finger_point_masks.values())
     per_finger = np.stack([np.where(m, sd, np.inf).min(axis=1) for m in masks], axis=1)
     cd = np.where(contact, np.clip(per_finger, 0, None), np.nan)
     counted = contact.sum(axis=1)
@@ -208,7 +207,6 @@ def _refine_finger(
 ) -> None:
     """Optimise one finger's joints in every frame where it is in contact (updates ``q``)."""
     fingers = list(hand.spec.fingers)
-    links = np.asarray(hand.surface_point_links)
     lower, upper = hand.lower, hand.upper
     coupled = set(hand._coupled.tolist())
     f = fingers.index(name)
@@ -218,7 +216,7 @@ def _refine_finger(
     joints = [j for j in hand.fingers[name] if j not in coupled]
     if params.refine_base:
         joints = list(range(6)) + joints
-    mine = np.isin(links, hand.spec.fingers[name].links)
+    mine = hand.finger_point_masks[name]
     others = ~mine
     finger_idx = torch.as_tensor(np.flatnonzero(mine))
     other_idx = torch.as_tensor(

@@ -81,7 +81,7 @@ def test_finger_distances_sign_on_a_box_with_a_hole():
 
 def test_contact_sequence_writes_a_consistent_contact_map(tmp_path):
     """A hand touching a box: the map pairs contact-finger points with surface points."""
-    from dexflow.contact import _contact_map, _finger_masks, contact_states
+    from dexflow.contact import _contact_map, contact_states
 
     hand = load_hand("allegro")
     q = hand.zero(4).numpy()
@@ -98,7 +98,13 @@ def test_contact_sequence_writes_a_consistent_contact_map(tmp_path):
     from scipy.spatial import cKDTree
 
     cmap = _contact_map(
-        local, dist, final, _finger_masks(hand), cKDTree(points), box.face_normals[face], 5
+        local,
+        dist,
+        final,
+        list(hand.finger_point_masks.values()),
+        cKDTree(points),
+        box.face_normals[face],
+        5,
     )
     assert set(cmap["map_finger"].tolist()) == {index} and len(cmap["map_frame"]) == 4 * 5
     assert np.abs(sdf.query(cmap["map_object_point"])).max() < 2e-3  # on the surface

@@ -8,7 +8,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from dexflow.contact import _contact_map, _finger_masks, finger_distances
+from dexflow.contact import _contact_map, finger_distances
 from dexflow.hands import load_hand
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.refine import RefineParams, TorchSDF, energy_terms, refine_trajectory
@@ -46,7 +46,13 @@ def _refine(hand, q, pose, box, grid, contact):
     _, dist, local = finger_distances(hand, q, pose, grid)
     points, faces = trimesh.sample.sample_surface(box, 4000, seed=0)
     cmap = _contact_map(
-        local, dist, contact, _finger_masks(hand), cKDTree(points), box.face_normals[faces], 8
+        local,
+        dist,
+        contact,
+        list(hand.finger_point_masks.values()),
+        cKDTree(points),
+        box.face_normals[faces],
+        8,
     )
     params = RefineParams(blend_frames=0.0, iterations=80)
     q1, e0, e1 = refine_trajectory(hand, q, pose, TorchSDF(grid), contact, cmap, params)

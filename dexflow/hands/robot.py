@@ -79,6 +79,7 @@ class RobotHand:
         keypoint_links: Frames matched to human keypoints, in ``spec.keypoints`` order.
         mano_indices: Human keypoint index of each.
         fingers: Finger name -> indices into ``q`` of its joints.
+        finger_point_masks: Finger name -> (N,) surface points on its contact ``links``.
     """
 
     def __init__(
@@ -131,6 +132,12 @@ class RobotHand:
         offsets = torch.tensor([k.offset for k in spec.keypoints], dtype=dtype)
         self._keypoint_offsets = offsets.to(self.device)
         self._keypoint_frames = torch.tensor([self._frame_index[n] for n in self.keypoint_links])
+        frame_of_link = torch.tensor(
+            [self._frame_index[n] for n in self.surface_links], dtype=torch.long
+        )
+        self._surface_frame = frame_of_link[self._surface_link]  # frame of every surface point
+        links = np.asarray(self.surface_point_links)
+        self.finger_point_masks = {f: np.isin(links, fs.links) for f, fs in spec.fingers.items()}
         self._keypoint_pk_indices = self.chain.get_frame_indices(*self.keypoint_links)
 
     # ------------------------------------------------------------------------------ surface
@@ -227,9 +234,7 @@ class RobotHand:
 
     def surface_points(self, q, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """World points (B, P, 3) and normals of the surface points ``index (P,)`` only."""
-        t = self.frame_transforms(q)
-        frame_of_link = torch.tensor([self._frame_index[n] for n in self.surface_links])
-        t = t[:, frame_of_link[self._surface_link[index]]]  # (B, P, 4, 4)
+        t = self.frame_transforms(q)[:, self._surface_frame[index]]  # (B, P, 4, 4)
         rot = t[..., :3, :3]
         points = (rot @ self._surface_local[index, :, None])[..., 0] + t[..., :3, 3]
         normals = (rot @ self._surface_normals[index, :, None])[..., 0]
