@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-__all__ = ["bench_fk"]
+__all__ = ["bench_fk", "bench_refine", "bench_retarget", "bench_simulate"]
 
 
 def _rate(fn: Callable[[], object], frames: int, repeats: int) -> float:
@@ -242,3 +242,57 @@ def bench_refine(
     print(f"refine one frame at a time: {looped:8.1f} frames/s ({len(frames)} frames in contact)")
     print(f"batched / one at a time:    {batched / looped:8.1f}x")
     return [{"batched_fps": batched, "looped_fps": looped}]
+
+
+def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 6) -> list[dict]:
+    """Simulation throughput (frames evaluated per second, one core) on refined demo frames after
+    first contact: the stage's protocol with early exits against the same frames run through all
+    six full-length tests, measured in the same run. Needs `dvc repro`."""
+    import dataclasses
+    from pathlib import Path
+
+    from dexflow.config import load_params
+    from dexflow.hands.robot import load_hand
+    from dexflow.io.sequence import load_sequence
+    from dexflow.simulate import GraspWorld, hand_urdf
+
+    torch.set_num_threads(1)
+    params = load_params("params.yaml").simulate
+    hand = load_hand(hand_name)
+    files = sorted(Path("data/refine/sequences").glob("*.npz"))
+    if not files:
+        raise FileNotFoundError("data/refine: no sequences; run `dvc repro` first")
+    files = files[:: max(1, len(files) // sequences)][:sequences]
+    jobs = []
+    for path in files:
+        seq = load_sequence(
+            Path("data/scale_align/sequences") / path.name, data_root="data/scale_align"
+        )
+        q = np.load(path)["q"]
+        with np.load(Path("data/contact/sequences") / path.name) as data:
+            contact = np.flatnonzero(data["final"].any(axis=1))
+        picked = np.linspace(contact[0], contact[-1], frames).round().astype(int)
+        jobs.append(
+            ((Path("data/scale_align") / seq.obj_mesh).parent / "convex.obj", q, seq, picked)
+        )
+
+    def run(p) -> tuple[float, int]:
+        world = GraspWorld(hand, hand_urdf(hand), p)
+        tests, start = 0, time.perf_counter()
+        for convex, q, seq, picked in jobs:
+            world.set_object(convex)
+            for t in picked:
+                tests += int(world.test_frame(q[t], seq.obj_pose[t])["tested"].sum())
+        world.close()
+        return len(jobs) * frames / (time.perf_counter() - start), tests
+
+    fast, fast_tests = run(params)
+    full, full_tests = run(dataclasses.replace(params, early_exit=False))
+    n = len(jobs) * frames
+    print(f"hand {hand_name}, {n} refined frames after first contact, 1 thread")
+    print(f"simulate, early exits (the stage): {fast:7.2f} frames/s ({fast_tests} direction tests)")
+    print(f"simulate, all six full tests:      {full:7.2f} frames/s ({full_tests} direction tests)")
+    print(f"early exits / full:                {fast / full:7.2f}x")
+    steps = full_tests * params.substeps * (params.control_steps + params.settle_steps)
+    print(f"physics steps/s (full):            {steps * full / n:7.0f}")
+    return [{"early_exit_fps": fast, "full_fps": full}]

@@ -7,7 +7,7 @@ Subcommands:
   convert ADAPTER SRC DST           dexycb | ho3d | grab | generic -> canonical sequences
   hand check NAME|YAML [--png P]    validate a hand, print its kinematic tree, draw its zero pose
   hand export NAME|YAML OUT.urdf    write an MJCF hand as a URDF (for pybullet)
-  bench fk | retarget | refine      throughput benchmarks (frames/s against baselines)
+  bench fk|retarget|refine|simulate throughput benchmarks (frames/s against baselines)
 """
 
 from __future__ import annotations
@@ -121,10 +121,13 @@ def _cmd_hand_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from dexflow.bench import bench_fk, bench_refine, bench_retarget
+    from dexflow.bench import bench_fk, bench_refine, bench_retarget, bench_simulate
 
     if args.what == "fk":
         bench_fk(args.hands or None, repeats=args.repeats)
+    elif args.what == "simulate":
+        for hand in args.hands or ["shadow"]:
+            bench_simulate(hand, sequences=min(args.sequences, 3))
     elif args.what == "refine":
         for hand in args.hands or ["shadow"]:
             bench_refine(hand, sequences=args.sequences)
@@ -184,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_hand_export)
 
     p = sub.add_parser("bench", help="benchmarks (print frames/s)")
-    p.add_argument("what", choices=["fk", "retarget", "refine"])
+    p.add_argument("what", choices=["fk", "retarget", "refine", "simulate"])
     p.add_argument("--hands", nargs="*")
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--sequences", type=int, default=6, help="retarget: demo sequences to use")

@@ -21,6 +21,7 @@ from dexflow.errors import ConfigError
 from dexflow.hands.spec import HandSpec as HandParams
 from dexflow.refine import RefineParams
 from dexflow.retarget import RetargetParams
+from dexflow.simulate import SimulateParams
 
 __all__ = [
     "ConvexParams",
@@ -167,6 +168,7 @@ class PipelineParams:
     retarget: RetargetParams = field(default_factory=RetargetParams)
     contact: ContactParams = field(default_factory=ContactParams)
     refine: RefineParams = field(default_factory=RefineParams)
+    simulate: SimulateParams = field(default_factory=SimulateParams)
     run: RunParams = field(default_factory=RunParams)
 
 
@@ -242,4 +244,19 @@ def load_params(path: str | Path = "params.yaml") -> PipelineParams:
     _require(not unknown, "refine.finger_order", "finger names thumb..little", unknown)
     for key in ("w_dis", "w_pen", "w_align", "w_spen", "w_joints", "w_smooth", "learning_rate"):
         _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
+    _validate_simulate(params.simulate)
     return params
+
+
+def _validate_simulate(s: SimulateParams) -> None:
+    for key in ("control_dt_s", "gravity", "object_mass_kg", "motor_force", "base_max_force"):
+        _require(getattr(s, key) > 0, f"simulate.{key}", "> 0", getattr(s, key))
+    non_negative = ("friction", "position_gain", "velocity_gain", "push_m", "contact_margin_m",
+                    "penetration_tol_m", "max_displacement_m", "max_rotation_deg",
+                    "drop_distance_m")  # fmt: skip
+    for key in non_negative:
+        _require(getattr(s, key) >= 0, f"simulate.{key}", ">= 0", getattr(s, key))
+    for key in ("substeps", "control_steps", "stride"):
+        _require(getattr(s, key) >= 1, f"simulate.{key}", ">= 1", getattr(s, key))
+    for key in ("settle_steps", "max_frames"):
+        _require(getattr(s, key) >= 0, f"simulate.{key}", ">= 0", getattr(s, key))

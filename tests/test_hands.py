@@ -165,14 +165,14 @@ def test_mjcf_export_loads_in_pybullet_with_matching_link_frames(shadow, tmp_pat
 
 GRIPPER_URDF = """<?xml version="1.0"?>
 <robot name="gripper3">
-  <link name="base"><collision><geometry><box size="0.06 0.06 0.02"/></geometry></collision></link>
+  <link name="base"><inertial><mass value="0.2"/><inertia ixx="1e-4" iyy="1e-4" izz="1e-4" ixy="0" ixz="0" iyz="0"/></inertial><collision><geometry><box size="0.06 0.06 0.02"/></geometry></collision></link>
   {fingers}
 </robot>"""
 
 FINGER = """
-  <link name="f{i}_prox"><collision><origin xyz="0 0 0.02"/><geometry><box size="0.012 0.012 0.04"/></geometry></collision></link>
-  <link name="f{i}_dist"><collision><origin xyz="0 0 0.015"/><geometry><box size="0.01 0.01 0.03"/></geometry></collision></link>
-  <link name="f{i}_tip"/>
+  <link name="f{i}_prox"><inertial><mass value="0.02"/><inertia ixx="3e-6" iyy="3e-6" izz="3e-6" ixy="0" ixz="0" iyz="0"/></inertial><collision><origin xyz="0 0 0.02"/><geometry><box size="0.012 0.012 0.04"/></geometry></collision></link>
+  <link name="f{i}_dist"><inertial><mass value="0.01"/><inertia ixx="1e-6" iyy="1e-6" izz="1e-6" ixy="0" ixz="0" iyz="0"/></inertial><collision><origin xyz="0 0 0.015"/><geometry><box size="0.01 0.01 0.03"/></geometry></collision></link>
+  <link name="f{i}_tip"><inertial><mass value="0.001"/><inertia ixx="1e-8" iyy="1e-8" izz="1e-8" ixy="0" ixz="0" iyz="0"/></inertial></link>
   <joint name="f{i}_j0" type="revolute"><parent link="base"/><child link="f{i}_prox"/>
     <origin xyz="{x} {y} 0.01" rpy="0 0 {yaw}"/><axis xyz="1 0 0"/><limit lower="-0.5" upper="1.2" effort="1" velocity="1"/></joint>
   <joint name="f{i}_j1" type="revolute"><parent link="f{i}_prox"/><child link="f{i}_dist"/>

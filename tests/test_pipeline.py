@@ -47,6 +47,8 @@ def project(tmp_path_factory) -> Path:
     demo = dst / "conf" / "demo" / "default.yaml"
     text = demo.read_text().replace("objects: []", "objects: [061_foam_brick]")
     demo.write_text(text.replace("sequences_per_object: 3", "sequences_per_object: 2"))
+    simulate = dst / "conf" / "simulate" / "default.yaml"
+    simulate.write_text(simulate.read_text().replace("max_frames: 0", "max_frames: 3"))
     _run([sys.executable, "-m", "dexflow.cli", "params"], dst)
     _run(["git", "init", "-q", "-b", "main"], dst)
     _run(["git", "config", "user.email", "test@dexflow.invalid"], dst)
@@ -62,7 +64,9 @@ def test_repro_then_noop_then_only_the_changed_stage(project):
     summary = json.loads((project / "data/scale_align/summary.json").read_text())
     assert summary["num_ok"] == summary["num_sequences"] == 2
     assert json.loads((project / "reports/metrics/demo.json").read_text())["sequences"] == 2
-    for stage in ("retarget/dexflow", "retarget/position", "contact"):
+    stages = ("retarget/dexflow", "retarget/position", "contact", "refine", "simulate/baseline",
+              "simulate/retarget", "simulate/refine")  # fmt: skip
+    for stage in stages:
         done = json.loads((project / "data" / stage / "summary.json").read_text())
         assert done["num_ok"] == done["num_sequences"] == 2, stage
 

@@ -1,0 +1,577 @@
+"""Stage simulate (paper §IV-B): does a frame's grasp hold the object in a physics engine?
+
+pybullet, headless (DIRECT). The hand is loaded from its URDF (MJCF hands are exported to URDF
+by :func:`dexflow.hands.export.export_urdf`), its floating base held at the frame's pose by a
+fixed constraint and its joints under position control. The object is a compound of the convex
+parts that stage scale_align decomposed it into, with ``object_mass_kg`` (uniform density: centre
+of mass and inertia from the parts) and ``friction`` (also given to every hand link).
+
+Protocol for one frame ``t`` (the paper's, after DexGraspNet):
+
+1. Hand at ``q_t``, object at its pose ``T_t``, everything at rest. The **starting penetration**
+   is the deepest overlap between a hand link and the object's convex parts (0 if none).
+2. Every link closer to the object than ``contact_margin_m`` is **pushed** along the contact
+   normal into the object by its gap plus ``push_m``: the joint change comes from one damped
+   least-squares step on the stacked Jacobian of the links' contact points (fingers only; tied
+   joints follow their leaders; limits hold). That configuration is the position-control target.
+3. For each of the six axis directions ``±x, ±y, ±z`` in turn, from the same start: a force
+   ``m g d`` (``g = gravity``) acts on the object's centre of mass (the hand is not pulled: a real
+   controller compensates its own weight) for ``control_steps`` steps of ``control_dt_s``,
+   each ``substeps`` physics steps. With ``early_exit``, a test ends once the object has been
+   dropped (farther than ``drop_distance_m`` from the hand and displaced by more than
+   ``max_displacement_m``: under a constant force it does not come back), and a frame's remaining
+   directions are skipped once both criteria have failed (their entries stay NaN).
+4. Per test: **held** if the object touches the hand at the end (closer than 1 mm);
+   **displacement** of its centre of mass and **rotation** angle from the start.
+
+Criteria, per frame, both reported:
+
+- ``contact`` (paper): held in all six tests;
+- ``bench`` (DexGraspBench): displacement < ``max_displacement_m`` and rotation
+  < ``max_rotation_deg`` in all six tests.
+
+A frame counts as a success only when its starting penetration is at most
+``penetration_tol_m``: a link wedged inside the object "holds" it without a real grasp. The
+uncounted result is kept too (``*_raw``) so that reports can show what the tolerance removes. A
+sequence succeeds (per criterion) if any evaluated frame at or after its first contact (stage
+contact) succeeds; frames are taken every ``stride`` frames and, with ``early_stop``, evaluation
+stops once both criteria have succeeded. SSR = the percentage of sequences that succeed.
+
+Deterministic: every test starts from a freshly built world state with the same calls, so a
+frame's result does not depend on the frames tested before it.
+"""
+
+from __future__ import annotations
+
+import atexit
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from dexflow.errors import HandConfigError
+from dexflow.hands.robot import RobotHand, base_transform
+
+__all__ = [
+    "DIRECTIONS",
+    "GraspWorld",
+    "SimulateParams",
+    "object_parts",
+    "run_simulate",
+    "simulate_sequence",
+]
+
+DIRECTIONS = np.array(
+    [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=float
+)
+_TOUCH_M = 1e-3  # "in contact" at the end of a test: closer than this
+_DLS_DAMPING = 1e-2  # damping (m/rad) of the push step's least squares
+_DROP_CHECK_EVERY = 10  # control steps between checks for a dropped object
+_FK_CHECK_TOL_M = 1e-4  # pybullet's link frames must match the kinematic model's
+
+
+@dataclass
+class SimulateParams:
+    """Stage ``simulate`` (``simulate`` in params.yaml)."""
+
+    control_dt_s: float = 1.0 / 60.0
+    substeps: int = 4
+    control_steps: int = 100
+    gravity: float = 9.8
+    object_mass_kg: float = 0.1
+    friction: float = 1.0
+    motor_force: float = 2.0
+    position_gain: float = 0.3
+    velocity_gain: float = 1.0
+    base_max_force: float = 1000.0
+    push_m: float = 0.005
+    contact_margin_m: float = 0.005
+    penetration_tol_m: float = 0.002
+    max_displacement_m: float = 0.05
+    max_rotation_deg: float = 15.0
+    drop_distance_m: float = 0.02
+    early_exit: bool = True
+    settle_steps: int = 20
+    stride: int = 5
+    early_stop: bool = True
+    max_frames: int = 0
+
+
+def object_parts(path: str | Path) -> list[np.ndarray]:
+    """Vertices (V, 3) of every convex part of a ``convex.obj`` (one ``o`` group per part)."""
+    scene = trimesh.load(Path(path), force="scene", process=False, group_material=False)
+    parts = [np.asarray(g.vertices, dtype=float) for g in scene.geometry.values()]
+    if not parts:
+        raise ValueError(f"{path}: no convex parts")
+    return parts
+
+
+def _mass_frame(parts: list[np.ndarray], mass: float) -> tuple[np.ndarray, np.ndarray]:
+    """Principal frame (4, 4) in the object frame and principal moments (3,) of the union of
+    the convex parts at uniform density."""
+    hulls = [trimesh.convex.convex_hull(v) for v in parts]
+    volume = sum(h.volume for h in hulls)
+    com = sum(h.volume * h.center_mass for h in hulls) / volume
+    inertia = np.zeros((3, 3))
+    for h in hulls:  # parallel-axis theorem to the common centre of mass, density 1
+        r = h.center_mass - com
+        inertia += h.moment_inertia + h.volume * (r @ r * np.eye(3) - np.outer(r, r))
+    moments, axes = np.linalg.eigh(inertia * mass / volume)
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] *= -1
+    frame = np.eye(4)
+    frame[:3, :3], frame[:3, 3] = axes, com
+    return frame, np.maximum(moments, 1e-9)
+
+
+def _pose7(transform: np.ndarray) -> tuple[list[float], list[float]]:
+    return transform[:3, 3].tolist(), Rotation.from_matrix(transform[:3, :3]).as_quat().tolist()
+
+
+def _matrix(position, quaternion) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_quat(quaternion).as_matrix()
+    out[:3, 3] = position
+    return out
+
+
+class GraspWorld:
+    """One pybullet world (its own DIRECT client) holding a hand and, per sequence, an object.
+
+    Args:
+        hand: The kinematic model (joint names, limits, couplings, forward kinematics).
+        urdf: The hand's URDF (the model file itself, or its export for MJCF hands).
+        params: The protocol's parameters.
+    """
+
+    def __init__(self, hand: RobotHand, urdf: str | Path, params: SimulateParams) -> None:
+        import pybullet as pb
+        from pybullet_utils.bullet_client import BulletClient
+
+        self.pb, self.hand, self.params, self.urdf = pb, hand, params, str(urdf)
+        self.client = BulletClient(connection_mode=pb.DIRECT)
+        self.client.setPhysicsEngineParameter(deterministicOverlappingPairs=1)
+        self._object_parts: list[np.ndarray] | None = None
+        self._build()
+        self._check_kinematics()
+
+    # ------------------------------------------------------------------------------- world
+
+    def _build(self) -> None:
+        """(Re)create the world: hand, and the object if one is set."""
+        c, p = self.client, self.params
+        c.resetSimulation()
+        c.setGravity(0, 0, 0)
+        c.setTimeStep(p.control_dt_s / p.substeps)
+        self.body = c.loadURDF(self.urdf, flags=self.pb.URDF_MAINTAIN_LINK_ORDER)
+        joints = {}
+        self.link_index = {c.getBodyInfo(self.body)[0].decode(): -1}
+        for i in range(c.getNumJoints(self.body)):
+            info = c.getJointInfo(self.body, i)
+            self.link_index[info[12].decode()] = i
+            if info[2] in (self.pb.JOINT_REVOLUTE, self.pb.JOINT_PRISMATIC):
+                joints[info[1].decode()] = i
+        missing = [n for n in self.hand.hand_joint_names if n not in joints]
+        if missing:
+            raise HandConfigError(
+                f"hand '{self.hand.spec.name}': joints {missing} of the kinematic model are not "
+                f"movable joints of {self.urdf}; found {sorted(joints)}"
+            )
+        self.joint_ids = [joints[n] for n in self.hand.hand_joint_names]
+        self.link_names = {i: n for n, i in self.link_index.items()}
+        for link in self.link_index.values():
+            c.changeDynamics(self.body, link, lateralFriction=p.friction)
+        inertial = c.getDynamicsInfo(self.body, -1)
+        self._base_inertial = _matrix(inertial[3], inertial[4])
+        pos, orn = _pose7(self._base_inertial)
+        self.constraint = c.createConstraint(
+            self.body, -1, -1, -1, self.pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], pos, None, orn
+        )
+        c.changeConstraint(self.constraint, maxForce=p.base_max_force)
+        self.object = None
+        if self._object_parts is not None:
+            self._add_object()
+
+    def _check_kinematics(self) -> None:
+        """pybullet's link frames must equal the kinematic model's at a random configuration."""
+        rng = np.random.default_rng(0)
+        q = self.hand.zero()[0].numpy().copy()
+        lo, hi = self.hand.lower.numpy()[6:], self.hand.upper.numpy()[6:]
+        q[6:] = lo + rng.random(len(lo)) * (hi - lo)
+        q[:6] = [0.1, -0.2, 0.3, 0.4, -0.5, 0.6]
+        q = self.hand.clamp(self.hand.apply_couplings(self.hand.as_q(q)))[0].numpy()
+        self._set_hand(q)
+        names = [n for n in self.link_index if n in set(self.hand.model.frames)]
+        ours = self.hand.link_transforms(q, names)[0].numpy()
+        error = 0.0
+        for name, t in zip(names, ours, strict=True):
+            i = self.link_index[name]
+            if i == -1:
+                pos, orn = self.client.getBasePositionAndOrientation(self.body)
+                frame = _matrix(pos, orn) @ np.linalg.inv(self._base_inertial)
+            else:
+                state = self.client.getLinkState(self.body, i, computeForwardKinematics=True)
+                frame = _matrix(state[4], state[5])
+            error = max(error, float(np.abs(frame[:3, 3] - t[:3, 3]).max()))
+        if error > _FK_CHECK_TOL_M:
+            raise HandConfigError(
+                f"hand '{self.hand.spec.name}': link frames of {self.urdf} in pybullet differ from "
+                f"the kinematic model by {error * 1000:.2f} mm (expected < "
+                f"{_FK_CHECK_TOL_M * 1000:g} mm): the URDF and the hand config disagree"
+            )
+
+    def set_object(self, convex_obj: str | Path) -> None:
+        """Use the object whose convex decomposition is ``convex_obj`` (from scale_align)."""
+        self._object_path = Path(convex_obj)
+        self._object_parts = object_parts(convex_obj)
+        self._frame, self._moments = _mass_frame(self._object_parts, self.params.object_mass_kg)
+        self._build()
+
+    def _add_object(self) -> None:
+        c, pb = self.client, self.pb
+        pos, orn = _pose7(np.linalg.inv(self._frame))  # parts in the principal frame
+        shape = c.createCollisionShape(
+            pb.GEOM_MESH, fileName=str(self._object_path), collisionFramePosition=pos,
+            collisionFrameOrientation=orn,
+        )  # fmt: skip
+        self.object = c.createMultiBody(
+            baseMass=self.params.object_mass_kg, baseCollisionShapeIndex=shape
+        )
+        c.changeDynamics(
+            self.object,
+            -1,
+            lateralFriction=self.params.friction,
+            localInertiaDiagonal=self._moments.tolist(),
+            collisionMargin=0.0,  # pybullet's default 1 mm would inflate the parts
+        )
+
+    # ------------------------------------------------------------------------------- state
+
+    def _set_hand(self, q: np.ndarray) -> None:
+        c = self.client
+        base = base_transform(torch.as_tensor(q[None, :6], dtype=torch.float64))[0].numpy()
+        pos, orn = _pose7(base @ self._base_inertial)
+        c.resetBasePositionAndOrientation(self.body, pos, orn)
+        c.changeConstraint(
+            self.constraint, jointChildPivot=pos, jointChildFrameOrientation=orn,
+            maxForce=self.params.base_max_force,
+        )  # fmt: skip
+        for joint, value in zip(self.joint_ids, q[6:], strict=True):
+            c.resetJointState(self.body, joint, float(value), 0.0)
+
+    def _set_object(self, pose: np.ndarray) -> np.ndarray:
+        """Place the object at ``pose`` (object frame in the world); returns its mass frame."""
+        frame = pose @ self._frame
+        pos, orn = _pose7(frame)
+        self.client.resetBasePositionAndOrientation(self.object, pos, orn)
+        self.client.resetBaseVelocity(self.object, [0, 0, 0], [0, 0, 0])
+        return frame
+
+    def _closest(self, distance: float) -> list:
+        return self.client.getClosestPoints(self.body, self.object, distance)
+
+    def gap(self, q: np.ndarray, pose: np.ndarray, links: list[str] | None = None) -> float:
+        """Signed distance (m) between the hand (or only ``links``) and the object placed at
+        ``q`` and ``pose``; negative when they overlap, +inf beyond 10 cm."""
+        self._set_hand(np.asarray(q, dtype=float))
+        self._set_object(pose)
+        ids = None if links is None else {self.link_index[n] for n in links}
+        distances = [pt[8] for pt in self._closest(0.1) if ids is None or pt[3] in ids]
+        return min(distances, default=float("inf"))
+
+    # ---------------------------------------------------------------------------- protocol
+
+    def push_targets(self, q: np.ndarray) -> tuple[np.ndarray, float, int]:
+        """Position-control targets with every touching link pushed into the object.
+
+        Returns:
+            Target ``q`` (dof,), the starting penetration depth (m, >= 0), links pushed.
+        """
+        p, hand = self.params, self.hand
+        points = self._closest(p.contact_margin_m)
+        penetration = max([0.0] + [-pt[8] for pt in points])
+        per_link: dict[int, tuple] = {}
+        for pt in points:  # the closest pair of every link
+            if pt[3] not in per_link or pt[8] < per_link[pt[3]][8]:
+                per_link[pt[3]] = pt
+        links = [self.link_names[i] for i in sorted(per_link)]
+        if not links:
+            return q.copy(), penetration, 0
+        # Jacobian of the contact points by forward differences over the free hand joints
+        coupled = set(hand._coupled.tolist())
+        free = [j for j in range(6, hand.dof) if j not in coupled]
+        step = 1e-6
+        qs = np.repeat(q[None], len(free) + 1, axis=0)
+        qs[np.arange(1, len(free) + 1), free] += step
+        qs_t = hand.apply_couplings(hand.as_q(qs))
+        frames = hand.link_transforms(qs_t, links).numpy()  # (F+1, L, 4, 4)
+        world = np.array([per_link[self.link_index[n]][5] for n in links])  # on the hand
+        normal = np.array([per_link[self.link_index[n]][7] for n in links])  # object -> hand
+        gap = np.array([max(per_link[self.link_index[n]][8], 0.0) for n in links])
+        rot0, pos0 = frames[0, :, :3, :3], frames[0, :, :3, 3]
+        local = np.einsum("lji,lj->li", rot0, world - pos0)
+        moved = np.einsum("flij,lj->fli", frames[..., :3, :3], local) + frames[..., :3, 3]
+        jac = ((moved[1:] - moved[0]) / step).reshape(len(free), -1).T  # (3L, F)
+        target = (-(gap + p.push_m)[:, None] * normal).reshape(-1)
+        damping = _DLS_DAMPING**2 * np.eye(len(target))
+        dq = jac.T @ np.linalg.solve(jac @ jac.T + damping, target)
+        out = q.copy()
+        out[free] += dq
+        out = hand.clamp(hand.apply_couplings(hand.as_q(out)))[0].numpy()
+        out[:6] = q[:6]
+        return out, penetration, len(links)
+
+    def test_frame(self, q: np.ndarray, pose: np.ndarray) -> dict:
+        """Run the six-direction test for one frame.
+
+        Args:
+            q: (dof,) hand configuration (base then joints, as stage retarget writes it).
+            pose: (4, 4) object pose in the world.
+
+        Returns:
+            ``penetration_m``, ``pushed_links``, ``held (6,)``, ``displacement_m (6,)``,
+            ``rotation_deg (6,)``, ``tested (6,)`` and the two criteria ``contact``, ``bench``.
+        """
+        if self.object is None:
+            raise RuntimeError("GraspWorld.test_frame: set_object first")
+        p, c = self.params, self.client
+        q = np.asarray(q, dtype=float)
+        self._build()
+        self._set_hand(q)
+        self._set_object(pose)
+        target, penetration, pushed = self.push_targets(q)
+        held = np.zeros(6, bool)
+        displacement = np.full(6, np.nan)
+        rotation = np.full(6, np.nan)
+        tested = np.zeros(6, bool)
+        for k, direction in enumerate(DIRECTIONS):
+            failed = not held[:k].all() and not _bench(displacement[:k], rotation[:k], p).all()
+            if p.early_exit and k and failed:
+                break  # both criteria have failed already
+            tested[k] = True
+            self._build()
+            self._set_hand(q)
+            start = self._set_object(pose)
+            c.setJointMotorControlArray(
+                self.body, self.joint_ids, self.pb.POSITION_CONTROL,
+                targetPositions=target[6:].tolist(), forces=[p.motor_force] * len(self.joint_ids),
+                positionGains=[p.position_gain] * len(self.joint_ids),
+                velocityGains=[p.velocity_gain] * len(self.joint_ids),
+            )  # fmt: skip
+            self._settle(start)
+            force = (p.object_mass_kg * p.gravity * direction).tolist()
+            for step in range(p.control_steps):
+                for _ in range(p.substeps):
+                    pos = c.getBasePositionAndOrientation(self.object)[0]
+                    c.applyExternalForce(self.object, -1, force, pos, self.pb.WORLD_FRAME)
+                    c.stepSimulation()
+                check = p.early_exit and (step + 1) % _DROP_CHECK_EVERY == 0
+                if check and self._dropped(start):
+                    break
+            pos, orn = c.getBasePositionAndOrientation(self.object)
+            end = _matrix(pos, orn)
+            displacement[k] = float(np.linalg.norm(end[:3, 3] - start[:3, 3]))
+            relative = Rotation.from_matrix(end[:3, :3] @ start[:3, :3].T)
+            rotation[k] = float(np.degrees(relative.magnitude()))
+            held[k] = bool(self._closest(_TOUCH_M))
+        return {
+            "penetration_m": penetration,
+            "pushed_links": pushed,
+            "held": held,
+            "displacement_m": displacement,
+            "rotation_deg": rotation,
+            "tested": tested,
+            "contact": bool(tested.all() and held.all()),
+            "bench": bool(tested.all() and _bench(displacement, rotation, p).all()),
+        }
+
+    def _settle(self, start: np.ndarray) -> None:
+        """Close the fingers onto the object while it is held at its start pose."""
+        if self.params.settle_steps == 0:
+            return
+        c = self.client
+        pos, orn = _pose7(start)
+        hold = c.createConstraint(
+            self.object, -1, -1, -1, self.pb.JOINT_FIXED, [0, 0, 0], [0, 0, 0], pos, None, orn
+        )
+        c.changeConstraint(hold, maxForce=self.params.base_max_force)
+        for _ in range(self.params.settle_steps * self.params.substeps):
+            c.stepSimulation()
+        c.removeConstraint(hold)
+
+    def _dropped(self, start: np.ndarray) -> bool:
+        pos = np.asarray(self.client.getBasePositionAndOrientation(self.object)[0])
+        far = not self._closest(self.params.drop_distance_m)
+        return far and np.linalg.norm(pos - start[:3, 3]) > self.params.max_displacement_m
+
+    def close(self) -> None:
+        self.client.disconnect()
+
+
+def _bench(displacement: np.ndarray, rotation: np.ndarray, p: SimulateParams) -> np.ndarray:
+    return (displacement < p.max_displacement_m) & (rotation < p.max_rotation_deg)
+
+
+def hand_urdf(hand: RobotHand) -> Path:
+    """The URDF pybullet loads for ``hand``: the model itself, or an export of an MJCF hand
+    (written once per process to a temporary directory)."""
+    from dexflow.hands.export import export_urdf
+
+    if hand.model.format == "urdf":
+        return Path(hand.model.path)
+    key = str(hand.model.path) + hand.model.root
+    if key not in _URDF_CACHE:
+        folder = Path(tempfile.mkdtemp(prefix="dexflow-urdf-"))
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
+        _URDF_CACHE[key] = export_urdf(hand.model, folder / f"{hand.spec.name}.urdf")
+    return _URDF_CACHE[key]
+
+
+_URDF_CACHE: dict[str, Path] = {}
+
+
+def simulate_sequence(
+    world: GraspWorld, q: np.ndarray, poses: np.ndarray, first_contact: int
+) -> tuple[dict[str, np.ndarray], dict]:
+    """Evaluate the frames of one trajectory from its first contact on.
+
+    Args:
+        world: A world whose object is this sequence's.
+        q: (T, dof) hand trajectory.
+        poses: (T, 4, 4) object poses.
+        first_contact: First frame with a finger in contact (-1: none, nothing is evaluated).
+
+    Returns:
+        Per evaluated frame arrays (``frame``, ``penetration_m``, ``held``, ...) and the
+        sequence's result.
+    """
+    p = world.params
+    frames = [] if first_contact < 0 else list(range(first_contact, len(q), p.stride))
+    if p.max_frames > 0:
+        frames = frames[: p.max_frames]
+    rows = []
+    found = {"contact": None, "bench": None, "contact_raw": None, "bench_raw": None}
+    for t in frames:
+        row = world.test_frame(q[t], poses[t])
+        row["frame"] = t
+        rows.append(row)
+        within = row["penetration_m"] <= p.penetration_tol_m
+        for key in ("contact", "bench"):
+            if row[key] and found[f"{key}_raw"] is None:
+                found[f"{key}_raw"] = t
+            if row[key] and within and found[key] is None:
+                found[key] = t
+        if p.early_stop and found["contact"] is not None and found["bench"] is not None:
+            break
+    keys = ("frame", "penetration_m", "pushed_links", "held", "displacement_m", "rotation_deg",
+            "tested", "contact", "bench")  # fmt: skip
+    arrays = {
+        k: np.array([r[k] for r in rows]) if rows else np.zeros((0, 6) if k in
+           ("held", "displacement_m", "rotation_deg", "tested") else 0)
+        for k in keys
+    }  # fmt: skip
+    pen = arrays["penetration_m"]
+    result = {
+        "frames": len(q),
+        "first_contact": int(first_contact),
+        "evaluated": len(rows),
+        "success_contact": found["contact"] is not None,
+        "success_bench": found["bench"] is not None,
+        "success_contact_raw": found["contact_raw"] is not None,
+        "success_bench_raw": found["bench_raw"] is not None,
+        "success_frame": -1 if found["contact"] is None else int(found["contact"]),
+        "penetration_mean_mm": float(pen.mean() * 1000) if len(pen) else 0.0,
+        "over_tolerance": float((pen > p.penetration_tol_m).mean()) if len(pen) else 0.0,
+    }
+    return arrays, result
+
+
+def run_simulate(params, method: str, traj_root, contact_root, aligned_root, out_root) -> dict:
+    """Stage runner: the six-direction test on every trajectory under ``traj_root``.
+
+    Args:
+        params: Pipeline params (``hand``, ``simulate``, ``run``).
+        method: Label of the trajectories (baseline, retarget, refine).
+        traj_root: Stage output holding ``sequences/<name>.npz`` with ``q``.
+        contact_root: Stage contact's output (first contact of every sequence).
+        aligned_root: Stage scale_align's output (object poses, convex parts).
+        out_root: Where to write.
+    """
+    from dexflow.config import project_root
+    from dexflow.hands.robot import cached_hand
+    from dexflow.io.atomic import save_json, save_npz
+    from dexflow.io.sequence import load_sequence, stage_files
+    from dexflow.parallel import map_items
+
+    traj_root, contact_root = Path(traj_root), Path(contact_root)
+    aligned_root, out_root = Path(aligned_root), Path(out_root)
+    files = stage_files(traj_root, out_root)
+    spec, base_dir, sp = params.hand, project_root() / "conf" / "hand", params.simulate
+
+    def one(path: Path) -> dict:
+        torch.set_num_threads(1)
+        hand = cached_hand(spec, base_dir)
+        seq = load_sequence(aligned_root / "sequences" / path.name, data_root=aligned_root)
+        with np.load(path) as data:
+            q = data["q"]
+        if len(q) != len(seq.obj_pose):
+            raise ValueError(
+                f"{path}: {len(q)} frames of q but {len(seq.obj_pose)} object poses in "
+                f"{aligned_root / 'sequences' / path.name}"
+            )
+        with np.load(contact_root / "sequences" / path.name) as data:
+            any_contact = data["final"].any(axis=1)
+        first = int(np.argmax(any_contact)) if any_contact.any() else -1
+        world = _world(hand, sp)
+        world.set_object((aligned_root / seq.obj_mesh).parent / "convex.obj")
+        start = time.perf_counter()
+        arrays, result = simulate_sequence(world, q, seq.obj_pose, first)
+        result["seconds"] = time.perf_counter() - start
+        save_npz(out_root / "sequences" / path.name, arrays)
+        return result
+
+    results = map_items(one, files, params.run.jobs, f"simulate {method}")
+    sequences = {r.item.stem: r.entry() for r in results}
+    ok = [s for s in sequences.values() if s["status"] == "ok"]
+    seconds = sum(s.pop("seconds") for s in ok)
+    evaluated = sum(s["evaluated"] for s in ok)
+
+    def percent(key):
+        return float(100 * np.mean([s[key] for s in ok])) if ok else float("nan")
+
+    summary = {
+        "stage": "simulate",
+        "method": method,
+        "num_sequences": len(files),
+        "num_ok": len(ok),
+        "num_failed": len(files) - len(ok),
+        "frames_evaluated": evaluated,
+        "ssr": percent("success_contact"),
+        "ssr_bench": percent("success_bench"),
+        "ssr_raw": percent("success_contact_raw"),
+        "ssr_bench_raw": percent("success_bench_raw"),
+        "penetration_mean_mm": float(np.mean([s["penetration_mean_mm"] for s in ok]))
+        if ok else float("nan"),
+        "over_tolerance": float(np.mean([s["over_tolerance"] for s in ok])) if ok else 0.0,
+        "sequences": dict(sorted(sequences.items())),
+    }  # fmt: skip
+    save_json(out_root / "summary.json", summary)
+    return {**summary, "frames_per_second_one_core": evaluated / seconds if seconds else 0.0}
+
+
+_WORLDS: dict[int, GraspWorld] = {}
+
+
+def _world(hand: RobotHand, params: SimulateParams) -> GraspWorld:
+    """One world per process and hand (loading and checking the URDF once)."""
+    key = id(hand)
+    world = _WORLDS.get(key)
+    if world is None or world.params != params:
+        world = _WORLDS[key] = GraspWorld(hand, hand_urdf(hand), params)
+    return world
