@@ -8,6 +8,9 @@ Subcommands:
   hand check NAME|YAML [--png P]    validate a hand, print its kinematic tree, draw its zero pose
   hand export NAME|YAML OUT.urdf    write an MJCF hand as a URDF (for pybullet)
   bench fk|retarget|refine|simulate throughput benchmarks (frames/s against baselines)
+  report summary                    reports/summary.md from the metrics (the `report` stage)
+  report ablation [--dvc] [--multirun DIR ...]
+                                    reports/ablation.md across experiments
 """
 
 from __future__ import annotations
@@ -137,6 +140,41 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_report(args: argparse.Namespace) -> int:
+    import json
+    import subprocess
+
+    from dexflow import report
+
+    if args.what == "summary":
+        out = report.write_summary(
+            "reports/metrics", "data/metrics/sequences.csv", "reports/plots", args.out or
+            "reports/summary.md", "reports/figures",
+        )  # fmt: skip
+        print(f"wrote {out}")
+        return 0
+    experiments = []
+    use_dvc = args.dvc or not args.multirun
+    if use_dvc:
+        command = ["dvc", "exp", "show", "--json"] + (["-A"] if args.all_commits else [])
+        done = subprocess.run(command, capture_output=True, text=True)
+        if done.returncode != 0:
+            logging.error("dvc exp show --json failed: %s", done.stderr.strip())
+            return 1
+        experiments += report.collect_dvc(json.loads(done.stdout or "[]"))
+    for folder in args.multirun or []:
+        if not Path(folder).is_dir():
+            logging.error("%s: no such multirun directory", folder)
+            return 1
+        experiments += report.collect_multirun(folder)
+    if not experiments:
+        logging.error("no experiments found (dvc exp show and --multirun directories are empty)")
+        return 1
+    out = report.write_ablation(experiments, args.out or "reports/ablation.md", "reports/figures")
+    print(f"wrote {out} ({len(experiments)} experiments)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dexflow", description=__doc__.split("\n\n")[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -192,6 +230,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--sequences", type=int, default=6, help="retarget: demo sequences to use")
     p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("report", help="generate reports/summary.md or reports/ablation.md")
+    p.add_argument("what", choices=["summary", "ablation"])
+    p.add_argument("--dvc", action="store_true", help="ablation: read `dvc exp show --json`")
+    p.add_argument(
+        "--all-commits", action="store_true", help="ablation: experiments of all commits"
+    )
+    p.add_argument("--multirun", nargs="*", help="ablation: Hydra multirun directories")
+    p.add_argument("--out", help="output Markdown file")
+    p.set_defaults(func=_cmd_report)
     return parser
 
 

@@ -19,6 +19,7 @@ from dexflow.contact import ContactParams
 from dexflow.data.demo import DemoConfig
 from dexflow.errors import ConfigError
 from dexflow.hands.spec import HandSpec as HandParams
+from dexflow.metrics import MetricsParams
 from dexflow.refine import RefineParams
 from dexflow.retarget import RetargetParams
 from dexflow.simulate import SimulateParams
@@ -169,6 +170,7 @@ class PipelineParams:
     contact: ContactParams = field(default_factory=ContactParams)
     refine: RefineParams = field(default_factory=RefineParams)
     simulate: SimulateParams = field(default_factory=SimulateParams)
+    metrics: MetricsParams = field(default_factory=MetricsParams)
     run: RunParams = field(default_factory=RunParams)
 
 
@@ -245,6 +247,10 @@ def load_params(path: str | Path = "params.yaml") -> PipelineParams:
     for key in ("w_dis", "w_pen", "w_align", "w_spen", "w_joints", "w_smooth", "learning_rate"):
         _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
     _validate_simulate(params.simulate)
+    m = params.metrics
+    for key in ("pd_violation_m", "spd_violation_m", "limit_tolerance_rad"):
+        _require(getattr(m, key) >= 0, f"metrics.{key}", ">= 0", getattr(m, key))
+    _require(m.kl_bins >= 2, "metrics.kl_bins", ">= 2", m.kl_bins)
     return params
 
 

@@ -1,0 +1,196 @@
+"""Metric definitions on hand-built cases, and the report generators on failed / partial runs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from dexflow.hands import load_hand
+from dexflow.metrics import (
+    MetricsParams,
+    SelfCollision,
+    chamfer_per_frame,
+    contact_distance,
+    penetration_depth,
+    state_flicker,
+    surface_distances,
+    trajectory_metrics,
+)
+from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.report import Experiment, collect_dvc, collect_multirun, write_ablation
+
+
+@pytest.fixture(scope="module")
+def allegro():
+    return load_hand("allegro")
+
+
+def _wall(hand, q, depth):
+    """A slab whose face is ``depth`` below the hand's extreme point along +x."""
+    with torch.no_grad():
+        points = hand.surface(torch.as_tensor(q))[0].numpy()[0]
+    slab = trimesh.creation.box(extents=(0.1, 0.4, 0.4))
+    sdf = SignedDistanceGrid.from_mesh(slab, spacing=0.004)
+    pose = np.eye(4)
+    pose[:3, 3] = [points[:, 0].max() - depth + 0.05, points[:, 1].mean(), points[:, 2].mean()]
+    return sdf, pose
+
+
+@pytest.mark.parametrize("depth", [0.0, 0.003, 0.008])
+def test_penetration_depth_of_a_known_overlap(allegro, depth):
+    q = allegro.zero().numpy()
+    sdf, pose = _wall(allegro, q, depth)
+    distances, _ = surface_distances(allegro, q, pose[None], sdf)
+    assert penetration_depth(distances)[0] == pytest.approx(depth, abs=3e-4)
+
+
+def test_contact_distance_and_flicker_by_hand():
+    per_finger = np.array([[0.004, -0.002, 0.05], [0.001, 0.003, 0.02], [0.1, 0.1, 0.1]])
+    contact = np.array([[True, True, False], [False, True, False], [False, False, False]])
+    cd = contact_distance(per_finger, contact)
+    assert cd[0] == pytest.approx((0.004 + 0.0) / 2)  # penetration clipped at 0
+    assert cd[1] == pytest.approx(0.003) and np.isnan(cd[2])
+    states = np.array([[0, 0], [1, 0], [0, 0], [1, 0], [1, 0]], dtype=bool)  # 3 changes
+    assert state_flicker(states, fps=10.0) == pytest.approx(3 / 2 / (4 / 10.0))
+
+
+def test_chamfer_of_identical_and_shifted_sets():
+    a = np.random.default_rng(0).normal(size=(5, 13, 3))
+    assert np.allclose(chamfer_per_frame(a, a), 0.0)
+    assert np.allclose(chamfer_per_frame(a, a + np.array([0.0, 0.0, 1e-3])), 1e-3, atol=1e-9)
+
+
+def test_identical_trajectories_give_zero_error_chamfer_and_kl(allegro):
+    t = np.linspace(0, 1, 40)
+    q = allegro.zero(40).numpy()
+    q[:, 0] = 0.1 * np.sin(3 * t)  # the hand moves, so the fingertips have speeds
+    q[:, 7] = 0.3 + 0.2 * np.sin(5 * t)
+    with torch.no_grad():
+        human = allegro.keypoints(torch.as_tensor(q)).numpy()
+    sdf, pose = _wall(allegro, allegro.zero().numpy(), -1.0)  # a metre away: no contact
+    poses = np.repeat(pose[None], 40, axis=0)
+    scalars, _ = trajectory_metrics(
+        allegro, q, human, np.ones(40, bool), poses, sdf, np.zeros((40, 4), bool), 30.0,
+        MetricsParams(),
+    )  # fmt: skip
+    assert scalars["keypoint_error_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert scalars["time_aligned_cd_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert scalars["velocity_kl"] == pytest.approx(0.0, abs=1e-12)
+    assert scalars["pd_mm"] == 0.0 and np.isnan(scalars["cd_mm"]) and scalars["fvr"] == 0.0
+    shifted = human + np.array([0.0, 0.0, 0.002])
+    moved, _ = trajectory_metrics(
+        allegro, q, shifted, np.ones(40, bool), poses, sdf, np.zeros((40, 4), bool), 30.0,
+        MetricsParams(),
+    )  # fmt: skip
+    assert moved["keypoint_error_mm"] == pytest.approx(2.0, abs=1e-6)
+
+
+def test_rms_acceleration_of_a_known_parabola(allegro):
+    fps, a = 30.0, 4.0  # rad/s² on one joint, zero on the others
+    t = np.arange(30) / fps
+    q = allegro.zero(30).numpy()
+    joint = allegro.joint_names.index("joint_1.0")
+    q[:, joint] = 0.2 + 0.1 * 0.5 * a * t**2  # 0.1 a
+    sdf, pose = _wall(allegro, allegro.zero().numpy(), -1.0)
+    human = np.zeros((30, len(allegro.keypoint_links), 3))
+    scalars, _ = trajectory_metrics(
+        allegro, q, human, np.zeros(30, bool), np.repeat(pose[None], 30, axis=0), sdf,
+        np.zeros((30, 4), bool), fps, MetricsParams(),
+    )  # fmt: skip
+    assert scalars["rms_acc"] == pytest.approx(0.1 * a / np.sqrt(allegro.dof - 6), rel=1e-9)
+
+
+def test_self_penetration_and_feasibility(allegro):
+    spd = SelfCollision(allegro)
+    zero = allegro.zero().numpy()
+    assert spd(zero)[0] == 0.0  # pairs overlapping at the zero pose are excluded by design
+    thumb, index = allegro.spec.fingers["thumb"].joints, allegro.spec.fingers["index"].joints
+    rng = np.random.default_rng(1)
+    lo, hi = allegro.lower.numpy(), allegro.upper.numpy()
+    q = np.repeat(zero, 200, axis=0)
+    for name in thumb + index:
+        j = allegro.joint_names.index(name)
+        q[:, j] = lo[j] + rng.random(200) * (hi[j] - lo[j])
+    depth = spd(q)
+    assert depth.max() > 0.003  # thumb and index collide in some random configurations
+    worst = q[[int(depth.argmax())]]
+    params = MetricsParams(spd_violation_m=0.001)
+    sdf, pose = _wall(allegro, zero, -1.0)
+    human = np.zeros((1, len(allegro.keypoint_links), 3))
+    args = (human, np.zeros(1, bool), pose[None], sdf, np.zeros((1, 4), bool), 30.0, params)
+    assert trajectory_metrics(allegro, worst, *args)[0]["fvr"] == 1.0
+    beyond = zero.copy()
+    beyond[0, allegro.joint_names.index(index[0])] = hi[allegro.joint_names.index(index[0])] + 0.1
+    assert trajectory_metrics(allegro, beyond, *args)[0]["fvr"] == 1.0
+    assert trajectory_metrics(allegro, zero, *args)[0]["fvr"] == 0.0
+
+
+# ------------------------------------------------------------------------------------ reports
+
+
+def _exp(name, value, ssr=None, error=None, source="dvc"):
+    metrics = {} if ssr is None else {"refine.ssr": ssr, "refine.pd_mm": 1.0 / (1 + value)}
+    return Experiment(name, source, {"contact.dis_min_m": value, "seed": 0}, metrics, error)
+
+
+def test_ablation_report_with_failed_and_partial_experiments(tmp_path):
+    experiments = [
+        _exp("a", 0.008, ssr=10.0),
+        _exp("b", 0.010, ssr=30.0),
+        _exp("c", 0.012, ssr=20.0),
+        _exp("broken", 0.014, error="stage refine failed"),
+        _exp("empty", 0.016),  # ran, but wrote no metrics
+    ]
+    experiments[2].metrics.pop("refine.pd_mm")  # partial: one metric missing
+    out = write_ablation(experiments, tmp_path / "ablation.md", tmp_path / "figures")
+    text = out.read_text()
+    section = text.split("## `contact.dis_min_m`")[1].split("##")[0]
+    rows = [line for line in section.splitlines() if line.startswith("| 0.0")]
+    assert [r.split("|")[1].strip() for r in rows] == ["0.008", "0.01", "0.012"]
+    assert "**30.000**" in rows[1]  # the best SSR is bold
+    assert "—" in rows[2]  # the missing metric is shown as missing, not dropped
+    assert "failed: stage refine failed" in text and "failed: no metrics" in text
+    assert (tmp_path / "figures" / "ablation_contact_dis_min_m.png").stat().st_size > 5000
+
+
+def test_collect_dvc_and_multirun(tmp_path):
+    show = [
+        {
+            "rev": "workspace", "name": None,
+            "data": {"params": {"params.yaml": {"data": {"contact": {"dis_min_m": 0.01}}}},
+                     "metrics": {"reports/metrics/metrics.json": {"data": {"refine.ssr": 5.0}}}},
+        },
+        {
+            "rev": "abc", "name": "main",
+            "data": {"params": {"params.yaml": {"data": {"contact": {"dis_min_m": 0.01}}}},
+                     "metrics": {}},
+            "experiments": [
+                {"revs": [{"rev": "e1", "name": "exp-one", "data": {
+                    "params": {"params.yaml": {"data": {"contact": {"dis_min_m": 0.008}}}},
+                    "metrics": {"reports/metrics/metrics.json": {"data": {"refine.ssr": 7.0}},
+                                "reports/metrics/contact.json": {"data": {"f": {"g": 1}}}}}}]},
+                {"revs": [{"rev": "e2", "name": "exp-bad", "error": {"msg": "failed"},
+                           "data": {"params": {}, "metrics": {}}}]},
+            ],
+        },
+    ]  # fmt: skip
+    found = {e.name: e for e in collect_dvc(show)}
+    assert found["exp-one"].params["contact.dis_min_m"] == 0.008
+    assert found["exp-one"].metrics == {"refine.ssr": 7.0, "contact.f.g": 1.0}
+    assert found["exp-bad"].error == "failed"
+    for i, value in enumerate((0.008, 0.012)):
+        job = tmp_path / "multirun" / str(i)
+        (job / "reports" / "metrics").mkdir(parents=True)
+        (job / "params.yaml").write_text(f"contact:\n  dis_min_m: {value}\n")
+        (job / "reports" / "metrics" / "metrics.json").write_text(json.dumps({"refine.ssr": i}))
+        status = (
+            {"status": "ok"} if i == 0 else {"status": "failed", "stage": "refine", "error": "x"}
+        )
+        (job / "sweep_status.json").write_text(json.dumps(status))
+    runs = collect_multirun(tmp_path / "multirun")
+    assert [r.params["contact.dis_min_m"] for r in runs] == [0.008, 0.012]
+    assert runs[0].error is None and runs[1].error == "stage refine: x"
