@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-__all__ = ["bench_fk", "bench_refine", "bench_retarget", "bench_simulate"]
+__all__ = ["bench_fk", "bench_pipeline", "bench_refine", "bench_retarget", "bench_simulate"]
 
 
 def _rate(fn: Callable[[], object], frames: int, repeats: int) -> float:
@@ -296,3 +296,137 @@ def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 
     steps = full_tests * params.substeps * (params.control_steps + params.settle_steps)
     print(f"physics steps/s (full):            {steps * full / n:7.0f}")
     return [{"early_exit_fps": fast, "full_fps": full}]
+
+
+PAPER_FRAMES = 292_000  # the DexFlow dataset: 292K frames over 50 objects
+
+
+def bench_pipeline(
+    sequences: int = 6, workers: tuple[int, ...] = (1, 2), out: str | None = "reports/bench.md"
+) -> list[dict]:
+    """The whole pipeline on ``sequences`` demo sequences (2 per object), once per worker count:
+    frames/s of every stage, its share of the time, the speed-up from 1 to N workers and an
+    estimate for the paper's 292K frames. Runs in a temporary directory; writes ``out``.
+    """
+    import dataclasses
+    import os
+    import platform
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from dexflow.config import load_params
+    from dexflow.data.ycb_standins import STANDINS
+
+    base = load_params("params.yaml")
+    objects = sorted(STANDINS)[: max(1, sequences // 2)]
+    demo = dataclasses.replace(base.demo, objects=objects, sequences_per_object=2)
+    runs = []
+    for n in workers:
+        root = Path(tempfile.mkdtemp(prefix=f"dexflow-bench-{n}-"))
+        run = dataclasses.replace(base.run, backend="sequential" if n == 1 else "local", n_jobs=n)
+        params = dataclasses.replace(base, demo=demo, run=run)
+        d = {k: root / k for k in ("demo", "aligned", "dexflow", "position", "contact", "refine",
+                                   "simulate", "metrics", "plots")}  # fmt: skip
+        data = dataclasses.replace(params.data, root=str(d["demo"]))
+        stages = _pipeline_stages(dataclasses.replace(params, data=data), d)
+        seconds, frames, evaluated = {}, 0, 0
+        for name, fn in stages:
+            start = time.perf_counter()
+            result = fn()
+            seconds[name] = time.perf_counter() - start
+            if name == "demo":
+                frames = int(result["num_frames"])
+            if name.startswith("simulate"):
+                evaluated += int(result["frames_evaluated"])
+        runs.append({"workers": n, "seconds": seconds, "frames": frames, "evaluated": evaluated})
+        shutil.rmtree(root, ignore_errors=True)
+
+    lines = _bench_table(runs, sequences, len(objects))
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"
+    lines.insert(4, f"Machine: {machine}. Wall-clock seconds; other load on the machine counts.")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if out:
+        from dexflow.io.atomic import atomic_path
+
+        with atomic_path(Path(out)) as tmp:
+            tmp.write_text(text)
+    return runs
+
+
+def _pipeline_stages(params, d: dict) -> list[tuple[str, Callable[[], dict]]]:
+    """Every stage of the pipeline as (name, call) on the directories ``d``."""
+    from dexflow.align import run_scale_align
+    from dexflow.contact import run_contact
+    from dexflow.data.demo import generate_demo
+    from dexflow.metrics import run_metrics
+    from dexflow.refine import run_refine
+    from dexflow.retarget import run_retarget
+    from dexflow.simulate import run_simulate
+
+    p = params
+    roots = {"scale_align": d["aligned"], "contact": d["contact"], "baseline": d["position"],
+             "retarget": d["dexflow"], "refine": d["refine"], "simulate": d["simulate"]}  # fmt: skip
+
+    def simulate(label: str, trajectories: str) -> Callable[[], dict]:
+        return lambda: run_simulate(
+            p, label, d[trajectories], d["contact"], d["aligned"], d["simulate"] / label
+        )
+
+    return [
+        ("demo", lambda: generate_demo(p.demo, d["demo"], n_jobs=p.run.jobs)),
+        ("scale_align", lambda: run_scale_align(p, d["demo"], d["aligned"])),
+        ("retarget@dexflow", lambda: run_retarget(p, "dexflow", d["aligned"], d["dexflow"])),
+        ("retarget@position", lambda: run_retarget(p, "position", d["aligned"], d["position"])),
+        ("contact", lambda: run_contact(p, d["dexflow"], d["aligned"], d["contact"])),
+        ("refine", lambda: run_refine(p, d["dexflow"], d["contact"], d["aligned"], d["refine"])),
+        ("simulate@baseline", simulate("baseline", "position")),
+        ("simulate@retarget", simulate("retarget", "dexflow")),
+        ("simulate@refine", simulate("refine", "refine")),
+        ("metrics", lambda: run_metrics(p, roots, d["metrics"], d["plots"])),
+    ]
+
+
+def _bench_table(runs: list[dict], sequences: int, objects: int) -> list[str]:
+    first, last = runs[0], runs[-1]
+    frames = first["frames"]
+    lines = [
+        "# dexflow pipeline benchmark",
+        "",
+        f"`dexflow bench pipeline --sequences {sequences}`: the whole pipeline on {sequences} demo "
+        f"sequences ({objects} objects, {frames} frames), once per worker count, in one run.",
+        "",
+        "| stage | "
+        + " | ".join(f"{r['workers']} worker(s): s, frames/s, share" for r in runs)
+        + f" | speed-up {first['workers']} → {last['workers']} |",
+        "|---" * (len(runs) + 2) + "|",
+    ]
+    for name in first["seconds"]:
+        cells = []
+        for r in runs:
+            total = sum(v for k, v in r["seconds"].items() if k != "demo")
+            s = r["seconds"][name]
+            share = "" if name == "demo" else f"{100 * s / total:.0f} %"
+            cells.append(f"{s:.1f} s, {frames / s:.0f} f/s, {share}")
+        speedup = first["seconds"][name] / last["seconds"][name]
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | {speedup:.2f}x |")
+    totals = [sum(v for k, v in r["seconds"].items() if k != "demo") for r in runs]
+    lines.append(
+        "| **pipeline (without demo)** | "
+        + " | ".join(f"**{t:.1f} s, {frames / t:.1f} f/s**" for t in totals)
+        + f" | **{totals[0] / totals[-1]:.2f}x** |"
+    )
+    per_object = last["seconds"]["scale_align"] / objects
+    per_frame = (totals[-1] - last["seconds"]["scale_align"]) / frames
+    estimate = per_frame * PAPER_FRAMES + per_object * 50
+    lines += [
+        "",
+        f"Simulation evaluated {last['evaluated']} frames (stride and early stop) of the "
+        f"{3 * frames} trajectory frames it was given.",
+        "",
+        f"**Estimate for the paper's dataset** ({PAPER_FRAMES:,} frames, 50 objects) with "
+        f"{last['workers']} workers: {per_frame * 1000:.1f} ms per frame after scale_align plus "
+        f"{per_object:.0f} s per object = **{estimate / 3600:.1f} h**.",
+    ]
+    return lines

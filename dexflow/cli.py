@@ -7,7 +7,10 @@ Subcommands:
   convert ADAPTER SRC DST           dexycb | ho3d | grab | generic -> canonical sequences
   hand check NAME|YAML [--png P]    validate a hand, print its kinematic tree, draw its zero pose
   hand export NAME|YAML OUT.urdf    write an MJCF hand as a URDF (for pybullet)
-  bench fk|retarget|refine|simulate throughput benchmarks (frames/s against baselines)
+  bench fk|retarget|refine|simulate|pipeline
+                                    throughput benchmarks (frames/s against baselines)
+  view SEQUENCE [--trajectory T] [--open]
+                                    write a rerun recording (.rrd) of a sequence
   report summary                    reports/summary.md from the metrics (the `report` stage)
   report ablation [--dvc] [--multirun DIR ...]
                                     reports/ablation.md across experiments
@@ -124,9 +127,18 @@ def _cmd_hand_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from dexflow.bench import bench_fk, bench_refine, bench_retarget, bench_simulate
+    from dexflow.bench import (
+        bench_fk,
+        bench_pipeline,
+        bench_refine,
+        bench_retarget,
+        bench_simulate,
+    )
 
-    if args.what == "fk":
+    if args.what == "pipeline":
+        workers = tuple(int(w) for w in args.workers.split(","))
+        bench_pipeline(args.sequences, workers, args.out)
+    elif args.what == "fk":
         bench_fk(args.hands or None, repeats=args.repeats)
     elif args.what == "simulate":
         for hand in args.hands or ["shadow"]:
@@ -172,6 +184,20 @@ def _cmd_report(args: argparse.Namespace) -> int:
         return 1
     out = report.write_ablation(experiments, args.out or "reports/ablation.md", "reports/figures")
     print(f"wrote {out} ({len(experiments)} experiments)")
+    return 0
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    from dexflow.viz import open_viewer, record_sequence
+
+    out = record_sequence(args.sequence, args.out, trajectory=args.trajectory)
+    print(f"wrote {out}")
+    if args.open:
+        try:
+            open_viewer(out)
+        except FileNotFoundError:
+            logging.error("no `rerun` executable on PATH; open %s with `rerun %s`", out, out)
+            return 1
     return 0
 
 
@@ -225,7 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_hand_export)
 
     p = sub.add_parser("bench", help="benchmarks (print frames/s)")
-    p.add_argument("what", choices=["fk", "retarget", "refine", "simulate"])
+    p.add_argument("what", choices=["fk", "retarget", "refine", "simulate", "pipeline"])
+    p.add_argument("--workers", default="1,2", help="pipeline: worker counts, e.g. 1,2")
+    p.add_argument("--out", default="reports/bench.md", help="pipeline: report file")
     p.add_argument("--hands", nargs="*")
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--sequences", type=int, default=6, help="retarget: demo sequences to use")
@@ -240,6 +268,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--multirun", nargs="*", help="ablation: Hydra multirun directories")
     p.add_argument("--out", help="output Markdown file")
     p.set_defaults(func=_cmd_report)
+
+    p = sub.add_parser("view", help="write a rerun recording (.rrd) of a sequence")
+    p.add_argument("sequence", help="sequence name (e.g. 025_mug__00_power) or a sequence .npz")
+    p.add_argument(
+        "--trajectory",
+        default="refine",
+        choices=["refine", "retarget", "baseline"],
+        help="data/refine, data/retarget/dexflow or data/retarget/position",
+    )
+    p.add_argument("--out", default=None, help="the .rrd file (default reports/rerun/<name>.rrd)")
+    p.add_argument("--open", action="store_true", help="start the rerun viewer on the file")
+    p.set_defaults(func=_cmd_view)
     return parser
 
 
