@@ -182,7 +182,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
     if not experiments:
         logging.error("no experiments found (dvc exp show and --multirun directories are empty)")
         return 1
-    out = report.write_ablation(experiments, args.out or "reports/ablation.md", "reports/figures")
+    out = Path(args.out or "reports/ablation.md")
+    out = report.write_ablation(experiments, out, out.parent / "figures")
     print(f"wrote {out} ({len(experiments)} experiments)")
     return 0
 

@@ -312,11 +312,19 @@ def collect_dvc(show: list | dict) -> list[Experiment]:
                 visit(node[key], name_hint)
 
     visit(show, "workspace")
-    unique, seen = [], set()
+    unique, seen, contents = [], set(), {}
     for exp in found:
-        if exp.name not in seen:
-            seen.add(exp.name)
-            unique.append(exp)
+        key = json.dumps([exp.params, exp.metrics], sort_keys=True, default=str)
+        if exp.name in seen:
+            continue
+        if key in contents and exp.metrics:  # the workspace holding an experiment's results
+            if contents[key].name == "workspace":
+                unique[unique.index(contents[key])] = exp
+                contents[key] = exp
+            continue
+        seen.add(exp.name)
+        contents[key] = exp
+        unique.append(exp)
     return unique
 
 
@@ -402,7 +410,8 @@ def write_ablation(experiments: list[Experiment], out_md, figures_dir, metrics=N
                 cell = _cell(table[m][i], 3)
                 finite = [x for x in table[m] if math.isfinite(x)]
                 higher = METRICS.get(m.split(".")[-1], ("", False))[1]
-                best = (max if higher else min)(finite) if len(finite) > 1 else None
+                distinct = len(finite) > 1 and max(finite) > min(finite)
+                best = (max if higher else min)(finite) if distinct else None
                 cells.append(f"**{cell}**" if best is not None and table[m][i] == best else cell)
             lines.append(f"| {json.loads(v)} | {len(groups[v])} | " + " | ".join(cells) + " |")
         if shown:
