@@ -30,12 +30,12 @@ import numpy as np
 from dexflow.config import PipelineParams
 from dexflow.human.keypoints import FINGER_KEYPOINTS
 from dexflow.io.atomic import save_json, save_npz
-from dexflow.io.sequence import Sequence, load_sequence, save_sequence, stage_files
+from dexflow.io.sequence import Sequence, load_sequence, save_sequence
 from dexflow.objects.convex import convex_decomposition, write_convex_obj
 from dexflow.objects.mesh import load_mesh, write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.objects.surface import sample_surface
-from dexflow.parallel import map_items
+from dexflow.resume import StageOutput
 
 __all__ = ["ObjectJob", "align_sequence", "prepare_object", "run_scale_align", "scale_sequence"]
 
@@ -146,7 +146,18 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
         The summary, also written to ``out_root/summary.json``.
     """
     in_root, out_root = Path(in_root), Path(out_root)
-    files = stage_files(in_root, out_root)
+    stage = StageOutput(
+        out_root,
+        "scale_align",
+        {
+            "seed": params.seed,
+            "hand.scale": params.hand.scale,
+            "hand.fingertip_offsets": params.hand.fingertip_offsets,
+            "scale_align": params.scale_align,
+        },
+        inputs=(in_root,),
+    )
+    files = stage.start()
 
     mesh_of: dict[str, str | None] = {}
     errors: dict[str, str] = {}
@@ -156,9 +167,14 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
         except Exception as exc:  # reported per sequence below
             errors[path.stem] = f"cannot read obj_mesh ({type(exc).__name__}: {exc})"
     jobs = sorted({ObjectJob(m, _object_key(m)) for m in mesh_of.values()}, key=lambda j: j.key)
-    n_jobs = params.run.jobs
-    object_results = map_items(
-        lambda job: prepare_object(job, in_root, out_root, params), jobs, n_jobs, "objects"
+    object_results = stage.map(
+        lambda job: prepare_object(job, in_root, out_root, params),
+        jobs,
+        params.run,
+        "objects",
+        group="objects",
+        name=lambda job: job.key,
+        inputs=lambda job: [in_root / job.mesh_rel],
     )
     objects = {r.item.key: r for r in object_results}
 
@@ -169,7 +185,7 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
         return align_sequence(path, in_root, out_root, params, obj.item.key)
 
     todo = [p for p in files if p.stem not in errors]
-    seq_results = map_items(run_one, todo, n_jobs, "sequences")
+    seq_results = stage.map(run_one, todo, params.run, "sequences")
     sequences = {stem: {"status": "failed", "error": e} for stem, e in errors.items()}
     for r in seq_results:
         sequences[r.item.stem] = r.entry()
@@ -184,5 +200,5 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
         "sequences": dict(sorted(sequences.items())),
         "objects": {k: r.entry() for k, r in sorted(objects.items())},
     }
-    save_json(out_root / "summary.json", summary)
+    stage.finish(summary)
     return summary

@@ -375,7 +375,7 @@ def _pipeline_stages(params, d: dict) -> list[tuple[str, Callable[[], dict]]]:
         )
 
     return [
-        ("demo", lambda: generate_demo(p.demo, d["demo"], n_jobs=p.run.jobs)),
+        ("demo", lambda: generate_demo(p.demo, d["demo"], p.run)),
         ("scale_align", lambda: run_scale_align(p, d["demo"], d["aligned"])),
         ("retarget@dexflow", lambda: run_retarget(p, "dexflow", d["aligned"], d["dexflow"])),
         ("retarget@position", lambda: run_retarget(p, "position", d["aligned"], d["position"])),

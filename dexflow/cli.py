@@ -77,7 +77,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     cfg = DemoConfig(
         seed=args.seed, objects=args.objects or [], sequences_per_object=args.sequences_per_object
     )
-    manifest = generate_demo(cfg, args.out, n_jobs=args.jobs)
+    manifest = generate_demo(cfg, args.out, args.jobs)
     print(f"{manifest['num_sequences']} sequences, {manifest['num_frames']} frames in {args.out}")
     return 0
 

@@ -138,19 +138,41 @@ class ScaleAlignParams:
 
 @dataclass
 class RunParams:
-    """How stages map over sequences (``run``)."""
+    """How stages map over sequences (``run``; see ``conf/run/*.yaml``). Results do not depend
+    on it.
+
+    Attributes:
+        backend: ``sequential`` (the stage's process), ``local`` (joblib processes) or ``ray``
+            (Ray tasks; the ``ray`` extra).
+        n_jobs: Processes (``local``) or Ray tasks in flight (``ray``); -1 = every core.
+        address: ``ray`` only: None starts a local Ray with ``n_jobs`` CPUs; ``"auto"`` joins
+            the cluster this machine is part of; ``"ray://<head>:10001"`` a remote one.
+    """
 
     backend: str = "local"
     n_jobs: int = -1
+    address: str | None = None
 
     def __post_init__(self) -> None:
         _require(
-            self.backend in ("sequential", "local"),
+            self.backend in ("sequential", "local", "ray"),
             "run.backend",
-            "'sequential' or 'local'",
+            "'sequential', 'local' or 'ray'",
             self.backend,
         )
         _require(self.n_jobs == -1 or self.n_jobs >= 1, "run.n_jobs", "-1 or >= 1", self.n_jobs)
+        _require(
+            self.address is None or self.backend == "ray",
+            "run.address",
+            "null unless run.backend is 'ray'",
+            self.address,
+        )
+        _require(
+            self.address is None or bool(str(self.address).strip()),
+            "run.address",
+            "null (a local Ray), 'auto' or 'ray://<head>:10001'",
+            self.address,
+        )
 
     @property
     def jobs(self) -> int:

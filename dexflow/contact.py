@@ -263,12 +263,17 @@ def contact_sequence(hand, retarget_file: Path, aligned_file: Path, aligned_root
 def run_contact(params, retarget_root, aligned_root, out_root) -> dict:
     """Stage runner over every retargeted sequence."""
     from dexflow.config import project_root
-    from dexflow.io.atomic import save_json, save_npz
-    from dexflow.io.sequence import stage_files
-    from dexflow.parallel import map_items
+    from dexflow.io.atomic import save_npz
+    from dexflow.resume import StageOutput
 
     retarget_root, aligned_root, out_root = Path(retarget_root), Path(aligned_root), Path(out_root)
-    files = stage_files(retarget_root, out_root)
+    stage = StageOutput(
+        out_root,
+        "contact",
+        {"hand": params.hand, "contact": params.contact},
+        inputs=(retarget_root, aligned_root),
+    )
+    files = stage.start()
     spec, base_dir = params.hand, project_root() / "conf" / "hand"
 
     def one(path: Path) -> dict:
@@ -281,7 +286,7 @@ def run_contact(params, retarget_root, aligned_root, out_root) -> dict:
         return stats
 
     start = time.perf_counter()
-    results = map_items(one, files, params.run.jobs, "contact")
+    results = stage.map(one, files, params.run)
     seconds = time.perf_counter() - start
     sequences = {r.item.stem: r.entry() for r in results}
     ok = [s for s in sequences.values() if s["status"] == "ok"]
@@ -314,5 +319,5 @@ def run_contact(params, retarget_root, aligned_root, out_root) -> dict:
                 for k in ("precision", "recall", "f1")
             }
     summary["sequences"] = dict(sorted(sequences.items()))
-    save_json(out_root / "summary.json", summary)
+    stage.finish(summary)
     return {**summary, "seconds": seconds}

@@ -371,7 +371,7 @@ def run_metrics(params, roots: dict[str, Path], out_root, plots_root) -> dict:
         }
         return entry
 
-    results = map_items(one, files, params.run.jobs, "metrics")
+    results = map_items(one, files, params.run, "metrics")
     entries = {r.item.stem: r for r in results}
     ok = {name: r.value for name, r in entries.items() if r.ok}
     summary = _aggregate(ok)

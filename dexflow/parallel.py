@@ -1,25 +1,36 @@
 """Map a function over independent items (sequences, objects) with per-item error capture.
 
-Backends: ``sequential`` (n_jobs = 1) or local processes through joblib (n_jobs > 1 or -1).
-Results come back in input order whatever the backend, so outputs are deterministic. An item
-that raises does not stop the others: its error is returned in its :class:`ItemResult`.
+Backends (``run.backend``, ``conf/run/*.yaml``): ``sequential`` (this process), ``local``
+(joblib processes, ``run.n_jobs``) and ``ray`` (Ray tasks on a local Ray or a cluster at
+``run.address``; the optional ``ray`` extra, imported only when chosen). Results come back in
+input order whatever the backend, so outputs are deterministic. An item that raises does not
+stop the others: its error is returned in its :class:`ItemResult`, the same way for every
+backend. Every backend drives a tqdm progress bar as items complete.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import traceback
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 from joblib import Parallel, delayed
 from tqdm.auto import tqdm
+
+from dexflow.errors import ConfigError
+
+if TYPE_CHECKING:
+    from dexflow.config import RunParams
 
 __all__ = ["ItemResult", "map_items", "raise_first_error"]
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
+
+RAY_MISSING = "run.backend 'ray' needs Ray: install the ray extra: pip install -e '.[ray]'"
 
 
 @dataclass
@@ -51,36 +62,129 @@ def _run(func: Callable[[Any], T], item: Any) -> ItemResult[T]:
         )
 
 
+def _run_in(cwd: str, func: Callable[[Any], T], index: int, item: Any) -> tuple[int, ItemResult]:
+    """A Ray task: run in the driver's working directory, so that relative paths hold."""
+    try:
+        os.chdir(cwd)
+    except OSError as exc:
+        return index, ItemResult(
+            item,
+            error=f"RuntimeError: the driver's directory {cwd} does not exist on this Ray node "
+            f"({exc}); run dexflow from a filesystem shared by every node",
+        )
+    return index, _run(func, item)
+
+
+def _settings(run: int | RunParams) -> tuple[str, int, str | None]:
+    """(backend, n_jobs, address) from an int (n_jobs, as before) or :class:`RunParams`."""
+    if hasattr(run, "backend"):
+        return run.backend, run.n_jobs, run.address
+    n_jobs = int(run)
+    return ("sequential" if n_jobs == 1 else "local"), n_jobs, None
+
+
 def map_items(
     func: Callable[[Any], T],
     items: Iterable[Any],
-    n_jobs: int = 1,
+    run: int | RunParams = 1,
     desc: str = "items",
     progress: bool = True,
 ) -> list[ItemResult[T]]:
     """Apply ``func`` to every item; never raises for an item's own error.
 
     Args:
-        func: Function of one item. With ``n_jobs != 1`` it is pickled (cloudpickle) to workers.
+        func: Function of one item. Except in this process it is pickled (cloudpickle) to the
+            workers, so closures work; the items and results must be picklable.
         items: The items.
-        n_jobs: 1 runs in this process; more (or -1 for all cores) uses joblib processes.
-        desc: Label of the progress bar.
+        run: The ``run`` params (backend, n_jobs, address), or an int n_jobs: 1 runs in this
+            process, more (or -1 for all cores) uses joblib processes.
+        desc: Label of the progress bar and of the error log lines.
         progress: Show a tqdm progress bar.
 
     Returns:
-        One :class:`ItemResult` per item, in input order.
+        One :class:`ItemResult` per item, in input order. With fewer than two items every
+        backend runs the item in this process.
     """
     items = list(items)
-    if n_jobs == 1 or len(items) <= 1:
-        results = [_run(func, item) for item in tqdm(items, desc=desc, disable=not progress)]
-    else:
-        runner = Parallel(n_jobs=n_jobs, return_as="generator")
-        stream = runner(delayed(_run)(func, item) for item in items)
-        results = list(tqdm(stream, total=len(items), desc=desc, disable=not progress))
+    backend, n_jobs, address = _settings(run)
+    bar = tqdm(total=len(items), desc=desc, disable=not progress)
+    with bar:
+        if backend == "sequential" or len(items) <= 1 or (backend == "local" and n_jobs == 1):
+            results = []
+            for item in items:
+                results.append(_run(func, item))
+                bar.update()
+        elif backend == "local":
+            results = _map_joblib(func, items, n_jobs, bar)
+        elif backend == "ray":
+            results = _map_ray(func, items, n_jobs, address, bar)
+        else:
+            raise ConfigError(
+                f"run.backend: expected 'sequential', 'local' or 'ray', found {backend!r}"
+            )
     for result in results:
         if not result.ok:
             log.error("%s %s failed: %s", desc, result.item, result.error)
     return results
+
+
+def _map_joblib(func: Callable, items: list, n_jobs: int, bar: tqdm) -> list[ItemResult]:
+    runner = Parallel(n_jobs=n_jobs, return_as="generator")  # in input order, as they come
+    results = []
+    for result in runner(delayed(_run)(func, item) for item in items):
+        results.append(result)
+        bar.update()
+    return results
+
+
+def _import_ray():
+    try:
+        import ray
+    except ImportError as exc:
+        raise ImportError(RAY_MISSING) from exc
+    return ray
+
+
+def _map_ray(
+    func: Callable, items: list, n_jobs: int, address: str | None, bar: tqdm
+) -> list[ItemResult]:
+    """Ray tasks, at most ``n_jobs`` in flight (-1: all at once), one CPU each.
+
+    Joins the Ray this process already has, or starts one: a local Ray with ``n_jobs`` CPUs
+    (``address`` None) or a connection to a cluster (``"auto"``, ``"ray://host:10001"``).
+    """
+    ray = _import_ray()
+    if not ray.is_initialized():
+        local = address is None and not os.environ.get("RAY_ADDRESS")
+        ray.init(
+            address=address,
+            num_cpus=n_jobs if local and n_jobs > 0 else None,
+            include_dashboard=False if local else None,
+            logging_level=logging.WARNING,
+        )
+    task = ray.remote(num_cpus=1)(_run_in)
+    func_ref = ray.put(func)  # shipped once, not once per item
+    cwd = os.getcwd()
+    limit = n_jobs if n_jobs > 0 else len(items)
+    results: list[ItemResult | None] = [None] * len(items)
+    queue = list(enumerate(items))[::-1]
+    pending: dict[Any, int] = {}
+    while queue or pending:
+        while queue and len(pending) < limit:
+            index, item = queue.pop()
+            pending[task.remote(cwd, func_ref, index, item)] = index
+        done, _ = ray.wait(list(pending), num_returns=1)
+        for ref in done:
+            index = pending.pop(ref)
+            try:
+                results[index] = ray.get(ref)[1]
+            except ray.exceptions.RayError as exc:  # the worker died (crash, memory, node lost)
+                results[index] = ItemResult(
+                    items[index], error=f"{type(exc).__name__}: {exc}".splitlines()[0],
+                    details=str(exc),
+                )  # fmt: skip
+            bar.update()
+    return results  # type: ignore[return-value]
 
 
 def raise_first_error(results: list[ItemResult]) -> None:

@@ -298,14 +298,20 @@ def _blend(hand: RobotHand, q_init: np.ndarray, q: np.ndarray, sigma: float) -> 
 def run_refine(params, retarget_root, contact_root, aligned_root, out_root) -> dict:
     """Stage runner: refine every retargeted sequence with its contacts."""
     from dexflow.config import project_root
-    from dexflow.io.atomic import save_json, save_npz
-    from dexflow.io.sequence import load_sequence, stage_files
+    from dexflow.io.atomic import save_npz
+    from dexflow.io.sequence import load_sequence
     from dexflow.measures import rms_acceleration
-    from dexflow.parallel import map_items
+    from dexflow.resume import StageOutput
 
     retarget_root, contact_root = Path(retarget_root), Path(contact_root)
     aligned_root, out_root = Path(aligned_root), Path(out_root)
-    files = stage_files(retarget_root, out_root)
+    stage = StageOutput(
+        out_root,
+        "refine",
+        {"hand": params.hand, "refine": params.refine},
+        inputs=(retarget_root, contact_root, aligned_root),
+    )
+    files = stage.start()
     spec, base_dir = params.hand, project_root() / "conf" / "hand"
     rp = params.refine
 
@@ -347,7 +353,7 @@ def run_refine(params, retarget_root, contact_root, aligned_root, out_root) -> d
         out["rms_acc_after"] = rms_acceleration(q1[:, 6:], seq.fps)
         return out
 
-    results = map_items(one, files, params.run.jobs, "refine")
+    results = stage.map(one, files, params.run)
     sequences = {r.item.stem: r.entry() for r in results}
     ok = [s for s in sequences.values() if s["status"] == "ok"]
     summary = {
@@ -370,7 +376,7 @@ def run_refine(params, retarget_root, contact_root, aligned_root, out_root) -> d
         summary[key] = float(np.mean([s[key] for s in ok])) if ok else float("nan")
     seconds = sum(s.pop("seconds") for s in ok)
     summary["sequences"] = dict(sorted(sequences.items()))
-    save_json(out_root / "summary.json", summary)
+    stage.finish(summary)
     return {
         **summary,
         "frames_per_second_one_core": summary["num_frames"] / seconds if seconds else 0.0,

@@ -577,13 +577,18 @@ def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path)
     from dataclasses import replace as dc_replace
 
     from dexflow.config import project_root
-    from dexflow.io.atomic import save_json
-    from dexflow.io.sequence import load_sequence, stage_files
-    from dexflow.parallel import map_items
+    from dexflow.io.sequence import load_sequence
+    from dexflow.resume import StageOutput
 
     in_root, out_root = Path(in_root), Path(out_root)
-    files = stage_files(in_root, out_root)
     rparams = dc_replace(params.retarget, method=method)
+    stage = StageOutput(
+        out_root,
+        f"retarget {method}",
+        {"seed": params.seed, "hand": params.hand, "retarget": rparams},
+        inputs=(in_root,),
+    )
+    files = stage.start()
     spec, base_dir = params.hand, project_root() / "conf" / "hand"
 
     def one(path: Path) -> dict:
@@ -595,7 +600,7 @@ def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path)
         return _sequence_metrics(result, hand, seq)
 
     start = time.perf_counter()
-    results = map_items(one, files, params.run.jobs, f"retarget {method}")
+    results = stage.map(one, files, params.run)
     seconds = time.perf_counter() - start
     sequences = {r.item.stem: r.entry() for r in results}
     ok = [s for s in sequences.values() if s["status"] == "ok"]
@@ -623,5 +628,5 @@ def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path)
         ),
         "sequences": dict(sorted(sequences.items())),
     }
-    save_json(out_root / "summary.json", summary)
+    stage.finish(summary)
     return {**summary, "seconds": seconds}

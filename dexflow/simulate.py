@@ -505,13 +505,19 @@ def run_simulate(params, method: str, traj_root, contact_root, aligned_root, out
     """
     from dexflow.config import project_root
     from dexflow.hands.robot import cached_hand
-    from dexflow.io.atomic import save_json, save_npz
-    from dexflow.io.sequence import load_sequence, stage_files
-    from dexflow.parallel import map_items
+    from dexflow.io.atomic import save_npz
+    from dexflow.io.sequence import load_sequence
+    from dexflow.resume import StageOutput
 
     traj_root, contact_root = Path(traj_root), Path(contact_root)
     aligned_root, out_root = Path(aligned_root), Path(out_root)
-    files = stage_files(traj_root, out_root)
+    stage = StageOutput(
+        out_root,
+        f"simulate {method}",
+        {"hand": params.hand, "simulate": params.simulate},
+        inputs=(traj_root, contact_root, aligned_root),
+    )
+    files = stage.start()
     spec, base_dir, sp = params.hand, project_root() / "conf" / "hand", params.simulate
 
     def one(path: Path) -> dict:
@@ -536,7 +542,7 @@ def run_simulate(params, method: str, traj_root, contact_root, aligned_root, out
         save_npz(out_root / "sequences" / path.name, arrays)
         return result
 
-    results = map_items(one, files, params.run.jobs, f"simulate {method}")
+    results = stage.map(one, files, params.run)
     sequences = {r.item.stem: r.entry() for r in results}
     ok = [s for s in sequences.values() if s["status"] == "ok"]
     seconds = sum(s.pop("seconds") for s in ok)
@@ -561,7 +567,7 @@ def run_simulate(params, method: str, traj_root, contact_root, aligned_root, out
         "over_tolerance": float(np.mean([s["over_tolerance"] for s in ok])) if ok else 0.0,
         "sequences": dict(sorted(sequences.items())),
     }  # fmt: skip
-    save_json(out_root / "summary.json", summary)
+    stage.finish(summary)
     return {**summary, "frames_per_second_one_core": evaluated / seconds if seconds else 0.0}
 
 

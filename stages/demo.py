@@ -31,7 +31,7 @@ def main() -> int:
     out = Path(OUT)
     if out.exists():
         shutil.rmtree(out)
-    manifest = generate_demo(params.demo, out, n_jobs=params.run.jobs)
+    manifest = generate_demo(params.demo, out, params.run)
     entries = manifest["sequences"]
     save_json(
         METRICS,

@@ -25,7 +25,7 @@ def _files(root):
 def test_same_seed_gives_identical_files(tmp_path):
     cfg = DemoConfig(seed=3, **SMALL)
     generate_demo(cfg, tmp_path / "a")
-    generate_demo(cfg, tmp_path / "b", n_jobs=2)
+    generate_demo(cfg, tmp_path / "b", 2)
     a, b = _files(tmp_path / "a"), _files(tmp_path / "b")
     assert sorted(a) == sorted(b) and len(a) == 4  # mesh, 2 sequences, index.json
     assert all(a[k] == b[k] for k in a)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -34,6 +35,9 @@ from dexflow.io.atomic import save_json
 from dexflow.io.sequence import Sequence, save_sequence
 from dexflow.objects.mesh import write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
+
+if TYPE_CHECKING:
+    from dexflow.config import RunParams
 
 __all__ = ["DemoConfig", "generate_demo", "generate_object"]
 
@@ -306,8 +310,13 @@ def generate_object(name: str, cfg: DemoConfig, out_dir: str | Path) -> list[dic
     return entries
 
 
-def generate_demo(cfg: DemoConfig, out_dir: str | Path, n_jobs: int = 1) -> dict:
+def generate_demo(cfg: DemoConfig, out_dir: str | Path, run: int | RunParams = 1) -> dict:
     """Generate the whole demo dataset into ``out_dir`` (``sequences/``, ``meshes/``).
+
+    Args:
+        cfg: What to generate (seeded: the same config gives the same bytes).
+        out_dir: The data root to write.
+        run: The ``run`` params (backend, n_jobs) or an int n_jobs; objects map over it.
 
     Returns:
         The manifest, also written to ``out_dir/index.json``.
@@ -321,7 +330,7 @@ def generate_demo(cfg: DemoConfig, out_dir: str | Path, n_jobs: int = 1) -> dict
 
         raise ConfigError(f"data.demo.objects: unknown {unknown}; known: {sorted(STANDINS)}")
     results = map_items(
-        lambda name: generate_object(name, cfg, out_dir), names, n_jobs=n_jobs, desc="demo objects"
+        lambda name: generate_object(name, cfg, out_dir), names, run, desc="demo objects"
     )
     raise_first_error(results)
     entries = [e for r in results for e in r.value]

@@ -310,19 +310,20 @@ def load_sequence(path: str | Path, data_root: str | Path | None = None) -> Sequ
     return validate_sequence(seq, path, data_root)
 
 
-def stage_files(in_root: str | Path, out_root: str | Path) -> list[Path]:
-    """The sequence files a stage maps over, after emptying its output directory.
+def stage_files(in_root: str | Path, out_root: str | Path | None = None) -> list[Path]:
+    """The sequence files a stage maps over: ``in_root/sequences/*.npz``, sorted.
+
+    The output directory is not emptied here: :class:`dexflow.resume.StageOutput` keeps what an
+    interrupted run with the same params completed and empties it otherwise. ``out_root``, if
+    given, gets its ``sequences/`` directory.
 
     Raises:
         FileNotFoundError: ``in_root/sequences`` holds no ``.npz`` file.
     """
-    import shutil
-
-    in_root, out_root = Path(in_root), Path(out_root)
+    in_root = Path(in_root)
     files = sorted((in_root / "sequences").glob("*.npz"))
     if not files:
         raise FileNotFoundError(f"{in_root / 'sequences'}: no *.npz sequence files")
-    if out_root.exists():
-        shutil.rmtree(out_root)
-    (out_root / "sequences").mkdir(parents=True)
+    if out_root is not None:
+        (Path(out_root) / "sequences").mkdir(parents=True, exist_ok=True)
     return files

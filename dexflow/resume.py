@@ -1,0 +1,290 @@
+"""Resumable stage outputs: a rerun keeps what an interrupted run with the same inputs completed.
+
+A stage's output directory holds, while the stage runs, two kinds of bookkeeping:
+
+- ``.stage.json``: the fingerprint of everything that determines the outputs: the stage's label
+  (with its method), its params sections as canonical JSON, a digest of dexflow's own files
+  (code) and a digest of the inputs every item shares (e.g. ``objects/`` of scale_align).
+- ``.done/<group>/<name>.json``: one record per completed item, written after its outputs: the
+  digest of the item's input files (their bytes, not their size or time) and the value the item
+  returned (its summary entry).
+
+On start, a directory with another fingerprint (or none) is emptied; one with the same
+fingerprint is kept and swept: every file that is not an output of an item with a valid record
+goes (outputs of removed sequences, half-written temporary files, the old summary). An item
+whose record matches its inputs is not run again; its recorded value is reused, so the summary
+is the one an uninterrupted run writes. When the stage finishes, :meth:`StageOutput.finish`
+writes ``summary.json`` and removes the bookkeeping, so a completed output directory holds
+exactly the stage's outputs (what DVC hashes: no timestamps, no absolute paths) and a later run
+starts from scratch. Items that failed leave no record and are retried.
+
+Example (a stage runner)::
+
+    stage = StageOutput(out_root, "contact", {"hand": params.hand, "contact": params.contact},
+                        inputs=(retarget_root, aligned_root))
+    files = stage.start()
+    results = stage.map(one, files, params.run)
+    ...
+    stage.finish(summary)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import json
+import logging
+import shutil
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from dexflow.io.atomic import atomic_path, save_json
+from dexflow.io.sequence import stage_files
+from dexflow.parallel import ItemResult, map_items
+
+if TYPE_CHECKING:
+    from dexflow.config import RunParams
+
+__all__ = ["DONE_DIR", "STAGE_FILE", "StageOutput", "code_digest", "file_digest"]
+
+STAGE_FILE = ".stage.json"
+DONE_DIR = ".done"
+_MISSING = "-"
+log = logging.getLogger(__name__)
+
+
+def file_digest(path: str | Path) -> str:
+    """sha1 of a file's bytes."""
+    digest = hashlib.sha1()
+    with open(path, "rb") as handle:
+        for chunk in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _files_digest(paths: Iterable[Path], relative_to: Path | None = None) -> str:
+    """sha1 over the given files' names (relative) and bytes; a missing file counts as such."""
+    digest = hashlib.sha1()
+    for path in paths:
+        if relative_to is not None:
+            digest.update(path.relative_to(relative_to).as_posix().encode() + b"\0")
+        digest.update((file_digest(path) if path.is_file() else _MISSING).encode() + b"\0")
+    return digest.hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def code_digest() -> str:
+    """Digest of every file of the dexflow package (code and assets), excluding caches."""
+    package = Path(__file__).resolve().parent
+    files = sorted(p for p in package.rglob("*") if p.is_file() and "__pycache__" not in p.parts)
+    return _files_digest(files, relative_to=package)
+
+
+def _shared_digest(root: Path) -> str:
+    """Digest of the files below ``root`` that every item may read: all but ``sequences/``,
+    the summary and dot-files (bookkeeping, temporaries)."""
+    files = sorted(
+        p
+        for p in root.rglob("*")
+        if p.is_file()
+        and p.relative_to(root).parts[0] not in ("sequences", "summary.json")
+        and not any(part.startswith(".") for part in p.relative_to(root).parts)
+    )
+    return _files_digest(files, relative_to=root)
+
+
+def _plain(obj: Any) -> Any:
+    """Params (dataclasses, mappings, sequences, scalars) as plain JSON values."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        obj = dataclasses.asdict(obj)
+    if isinstance(obj, Mapping):
+        return {str(key): _plain(value) for key, value in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(value) for value in obj]
+    return obj
+
+
+def _dumps(obj: Any) -> str:
+    """Canonical JSON text (sorted keys; non-JSON scalars as their str)."""
+    return json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n"
+
+
+def _stem(item: Path) -> str:
+    return Path(item).stem
+
+
+def _json_default(obj: Any) -> Any:
+    if hasattr(obj, "item"):  # numpy scalars
+        return obj.item()
+    raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
+
+
+@dataclasses.dataclass
+class _Recorded:
+    """``func`` followed by the item's done-record (pickled to workers with it)."""
+
+    func: Callable[[Any], Any]
+    name: Callable[[Any], str]
+    record_dir: Path
+    digests: dict[str, str]
+
+    def __call__(self, item: Any) -> Any:
+        value = self.func(item)
+        key = self.name(item)
+        try:
+            text = json.dumps(
+                {"inputs": self.digests[key], "value": value}, default=_json_default, indent=1
+            )
+        except (TypeError, ValueError) as exc:  # the item stands; only resuming it is lost
+            log.warning("%s: no done-record (%s); a rerun recomputes it", key, exc)
+            return value
+        with atomic_path(self.record_dir / f"{key}.json") as tmp:
+            tmp.write_text(text + "\n", encoding="utf-8")
+        return value
+
+
+class StageOutput:
+    """The output directory of one stage run, resumable after an interruption.
+
+    Args:
+        out_root: The stage's output directory.
+        stage: Label of the stage and its method (``"retarget dexflow"``); also the default
+            progress-bar label.
+        params: Every params section that determines the outputs, e.g.
+            ``{"hand": params.hand, "refine": params.refine}`` (dataclasses or plain values).
+        inputs: The input stage directories; sequences are listed from the first. An item
+            named ``<name>`` reads ``<root>/sequences/<name>.npz`` of each (those are hashed per
+            item) and may read anything else below them (hashed once, into the fingerprint).
+    """
+
+    def __init__(
+        self,
+        out_root: str | Path,
+        stage: str,
+        params: Mapping[str, Any],
+        inputs: Iterable[str | Path],
+    ) -> None:
+        self.out_root = Path(out_root)
+        self.stage = stage
+        self.inputs = [Path(p) for p in inputs]
+        self.params = _plain(dict(params))
+
+    def fingerprint(self) -> dict:
+        """What ``.stage.json`` holds: deterministic, no paths, no times."""
+        return {
+            "stage": self.stage,
+            "params": self.params,
+            "code": code_digest(),
+            "shared_inputs": [_shared_digest(root) for root in self.inputs],
+        }
+
+    def start(self) -> list[Path]:
+        """List the sequence files of the first input; empty the output directory unless it
+        holds an interrupted run with the same fingerprint.
+
+        Raises:
+            FileNotFoundError: the first input holds no ``sequences/*.npz``.
+        """
+        files = stage_files(self.inputs[0])
+        fingerprint = _dumps(self.fingerprint())
+        marker = self.out_root / STAGE_FILE
+        try:
+            resumed = marker.read_text(encoding="utf-8") == fingerprint
+        except OSError:
+            resumed = False
+        if resumed:
+            for entry in self.out_root.iterdir():  # old summary, temporaries
+                if entry.is_file() and entry.name != STAGE_FILE:
+                    entry.unlink()
+            log.info("%s: resuming the interrupted run in %s", self.stage, self.out_root)
+        else:
+            if self.out_root.exists():
+                shutil.rmtree(self.out_root)
+            self.out_root.mkdir(parents=True)
+            with atomic_path(marker) as tmp:
+                tmp.write_text(fingerprint, encoding="utf-8")
+        (self.out_root / "sequences").mkdir(exist_ok=True)
+        return files
+
+    def map(
+        self,
+        func: Callable[[Any], dict],
+        items: Iterable[Any],
+        run: int | RunParams,
+        desc: str | None = None,
+        *,
+        group: str = "sequences",
+        name: Callable[[Any], str] = _stem,
+        inputs: Callable[[Any], list[Path]] | None = None,
+    ) -> list[ItemResult]:
+        """:func:`dexflow.parallel.map_items`, skipping the items an interrupted run completed.
+
+        Args:
+            func: Function of one item; writes the item's outputs (atomically) below
+                ``out_root/<group>/`` as ``<name>.*`` files or a ``<name>/`` directory and
+                returns its summary entry (JSON values).
+            items: The items (by default sequence files).
+            run: The ``run`` params or an int n_jobs.
+            desc: Progress-bar label; the stage's label by default.
+            group: Subdirectory of the outputs (``sequences``, ``objects``).
+            name: The item's name (by default the file's stem).
+            inputs: The files an item reads (by default ``<root>/sequences/<name>.npz`` of
+                every input root).
+
+        Returns:
+            One result per item, in input order; reused items carry their recorded value.
+        """
+        items = list(items)
+        names = [name(item) for item in items]
+        if inputs is None:
+            files_of = [[root / "sequences" / f"{n}.npz" for root in self.inputs] for n in names]
+        else:
+            files_of = [[Path(p) for p in inputs(item)] for item in items]
+        digests = {n: _files_digest(files) for n, files in zip(names, files_of, strict=True)}
+        record_dir = self.out_root / DONE_DIR / group
+        done: dict[str, Any] = {}
+        for key in names:
+            try:
+                record = json.loads((record_dir / f"{key}.json").read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                continue
+            if record.get("inputs") == digests[key]:
+                done[key] = record["value"]
+        _sweep(self.out_root / group, record_dir, set(done))
+        if done:
+            log.info("%s: %d of %d %s already done", self.stage, len(done), len(items), group)
+        todo = [item for item, key in zip(items, names, strict=True) if key not in done]
+        computed = iter(
+            map_items(_Recorded(func, name, record_dir, digests), todo, run, desc or self.stage)
+        )
+        return [
+            ItemResult(item, value=done[key]) if key in done else next(computed)
+            for item, key in zip(items, names, strict=True)
+        ]
+
+    def finish(self, summary: dict) -> None:
+        """Write ``summary.json``, then drop the bookkeeping: the run is complete."""
+        save_json(self.out_root / "summary.json", summary)
+        (self.out_root / STAGE_FILE).unlink(missing_ok=True)
+        shutil.rmtree(self.out_root / DONE_DIR, ignore_errors=True)
+
+
+def _sweep(out_dir: Path, record_dir: Path, keep: set[str]) -> None:
+    """Remove outputs and records of every item not in ``keep`` (and temporary files)."""
+    for directory, named in ((out_dir, _output_name), (record_dir, _stem)):
+        if not directory.is_dir():
+            continue
+        for entry in directory.iterdir():
+            if named(entry) in keep and not entry.name.startswith("."):
+                continue
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
+
+
+def _output_name(entry: Path) -> str:
+    """The item an output belongs to: a ``<name>/`` directory or a ``<name>.<ext>`` file."""
+    return entry.name if entry.is_dir() else entry.stem

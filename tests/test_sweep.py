@@ -1,0 +1,356 @@
+"""Hydra multirun sweeps without DVC experiments (dexflow.sweep): dvc.yaml reading, the reuse
+rule on a toy pipeline, and the real pipeline fanned out by the joblib launcher (slow)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from dvc.utils.serialize import load_yaml
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from dexflow.config import compose_params
+from dexflow.report import collect_multirun
+from dexflow.sweep import load_stages, main, run_job, upstream_stages
+
+ROOT = Path(__file__).resolve().parents[1]
+UPSTREAM_OF_CONTACT = ["demo", "scale_align", "retarget@dexflow", "retarget@position"]
+
+
+def _env(project: Path | None = None) -> dict[str, str]:
+    env = {**os.environ, "DVC_NO_ANALYTICS": "1"}
+    if project is not None:  # stages import the project's copy of dexflow, as the sweep does
+        env["PYTHONPATH"] = os.pathsep.join([str(project), env.get("PYTHONPATH", "")])
+    return env
+
+
+def _run(cmd: list[str], cwd: Path, project: Path | None = None) -> str:
+    proc = subprocess.run(
+        cmd, cwd=cwd, env=_env(project), capture_output=True, text=True, timeout=900
+    )
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, f"{' '.join(cmd)} failed:\n{out}"
+    return out
+
+
+def _compose(overrides: list[str] | None = None):
+    with initialize_config_dir(str(ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=list(overrides or []))
+
+
+def _status(job: Path) -> dict:
+    return json.loads((job / "sweep_status.json").read_text())
+
+
+# --- dvc.yaml as the sweep reads it -------------------------------------------------------------
+
+
+def test_load_stages_expands_foreach_and_interpolates_params():
+    params = load_yaml(ROOT / "params.yaml")
+    stages = {s.name: s for s in load_stages(ROOT / "dvc.yaml", params)}
+    assert list(stages)[:4] == UPSTREAM_OF_CONTACT
+    assert {"simulate@baseline", "simulate@retarget", "simulate@refine"} <= set(stages)
+    retarget = stages["retarget@position"]
+    assert retarget.cmd == "python stages/retarget.py position"
+    assert retarget.outs == ("data/retarget/position",)
+    assert retarget.copies == ("reports/metrics/retarget_position.json",)
+    assert "data/retarget/position" in stages["simulate@baseline"].deps  # dict foreach: ${item}
+    assert stages["contact"].params == ("hand", "contact")
+    assert params["data"]["root"] in stages["scale_align"].deps  # ${data.root}
+
+    params["data"]["root"] = "data/mine"
+    moved = {s.name: s for s in load_stages(ROOT / "dvc.yaml", params)}
+    assert "data/mine" in moved["scale_align"].deps
+    assert moved["scale_align"] != stages["scale_align"] and moved["contact"] == stages["contact"]
+
+
+def test_upstream_stages_follow_the_outputs_each_stage_depends_on():
+    stages = load_stages(ROOT / "dvc.yaml", load_yaml(ROOT / "params.yaml"))
+    upstream = upstream_stages(stages)
+    assert upstream["demo"] == []
+    assert upstream["scale_align"] == ["demo"]  # through ${data.root} = data/demo
+    assert sorted(upstream["contact"]) == ["retarget@dexflow", "scale_align"]
+    assert "retarget@position" in upstream["simulate@baseline"]
+    assert "retarget@position" not in upstream["simulate@refine"]
+    assert "refine" in upstream["simulate@refine"]
+    # `report` reads reports/metrics, which every stage writes into
+    assert set(upstream["report"]) == {s.name for s in stages} - {"report"}
+
+
+# --- the reuse rule on a toy pipeline (in process, seconds) --------------------------------------
+
+WRITE = """\
+import json, os, sys
+from pathlib import Path
+import yaml
+
+name, key = sys.argv[1:]
+value = yaml.safe_load(open("params.yaml"))
+for part in key.split("."):
+    value = value[part]
+if value == 0.999:
+    sys.exit(f"boom: {key} = {value}")
+Path("data", name).mkdir(parents=True)
+Path("data", name, "value.txt").write_text(str(value))
+Path("reports/metrics").mkdir(parents=True, exist_ok=True)
+Path("reports/metrics", name + ".json").write_text(json.dumps({"value": value}))
+"""
+
+TOY_DVC_YAML = """\
+stages:
+  up:
+    cmd: python stages/write.py up seed
+    params: [seed]
+    outs: [data/up]
+    metrics:
+      - reports/metrics/up.json:
+          cache: false
+  down:
+    foreach: [dis_min_m, dis_max_m]
+    do:
+      cmd: python stages/write.py down_${item} contact.${item}
+      deps: [data/up]
+      params:
+        - contact.${item}
+      outs:
+        - data/down_${item}:
+            persist: true
+      metrics:
+        - reports/metrics/down_${item}.json:
+            cache: false
+"""
+
+
+@pytest.fixture
+def toy(tmp_path) -> Path:
+    """A project with a three-stage pipeline (up -> down@dis_min_m, down@dis_max_m) whose
+    outputs exist, made with the default params."""
+    root = tmp_path / "toy"
+    (root / "stages").mkdir(parents=True)
+    (root / "stages" / "write.py").write_text(WRITE)
+    (root / "dvc.yaml").write_text(TOY_DVC_YAML)
+    (root / "params.yaml").write_text(OmegaConf.to_yaml(_compose(), resolve=True))
+    for stage in load_stages(root / "dvc.yaml", load_yaml(root / "params.yaml")):
+        _run(stage.cmd.replace("python", sys.executable, 1).split(), root)
+    return root
+
+
+def _metric(job: Path, name: str) -> float:
+    return json.loads((job / "reports" / "metrics" / f"{name}.json").read_text())["value"]
+
+
+def test_job_reuses_what_its_params_leave_unchanged(toy, tmp_path):
+    job = tmp_path / "job"
+    status = run_job(_compose(["contact.dis_min_m=0.012"]), toy, job)
+
+    assert status == _status(job)
+    assert status["status"] == "ok" and status["stage"] is None and status["error"] is None
+    assert status["reused"] == ["up", "down@dis_max_m"] and status["ran"] == ["down@dis_min_m"]
+    assert (job / "data" / "up").resolve() == (toy / "data" / "up").resolve()
+    assert (job / "data" / "down_dis_max_m").is_symlink()
+    assert not (job / "data" / "down_dis_min_m").is_symlink()
+    metrics = job / "reports" / "metrics"
+    assert not any(p.is_symlink() for p in metrics.iterdir())  # cache: false -> copies
+    assert sorted(p.name for p in metrics.iterdir()) == [
+        "down_dis_max_m.json", "down_dis_min_m.json", "up.json",
+    ]  # fmt: skip
+    assert _metric(job, "down_dis_min_m") == 0.012
+    assert _metric(toy, "down_dis_min_m") != 0.012  # the project's outputs are untouched
+    job_params = (job / "params.yaml").read_text().splitlines()
+    project_params = (toy / "params.yaml").read_text().splitlines()
+    assert [a for a, b in zip(job_params, project_params, strict=True) if a != b] == [
+        "  dis_min_m: 0.012"
+    ]
+
+
+def test_a_changed_upstream_reruns_everything_downstream(toy, tmp_path):
+    status = run_job(_compose(["seed=7"]), toy, tmp_path / "job")
+    assert status["status"] == "ok"
+    assert status["reused"] == [] and status["ran"] == ["up", "down@dis_min_m", "down@dis_max_m"]
+    assert _metric(tmp_path / "job", "up") == 7
+
+
+def test_outputs_made_with_other_params_per_dvc_lock_are_not_reused(toy, tmp_path):
+    lock = {"schema": "2.0", "stages": {
+        "up": {"params": {"params.yaml": {"seed": 0}}},
+        "down@dis_max_m": {"params": {"params.yaml": {"contact.dis_max_m": 0.5}}},
+    }}  # fmt: skip
+    (toy / "dvc.lock").write_text(json.dumps(lock))
+    status = run_job(_compose(), toy, tmp_path / "job")
+    assert status["reused"] == ["up", "down@dis_min_m"] and status["ran"] == ["down@dis_max_m"]
+    value = (tmp_path / "job" / "data" / "down_dis_max_m" / "value.txt").read_text()
+    assert float(value) == load_yaml(toy / "params.yaml")["contact"]["dis_max_m"]
+
+
+def test_a_failing_stage_or_invalid_params_fail_the_job_without_raising(toy, tmp_path):
+    status = run_job(_compose(["contact.dis_max_m=0.999"]), toy, tmp_path / "a")
+    assert status["status"] == "failed" and status["stage"] == "down@dis_max_m"
+    assert "exit status 1" in status["error"] and "boom: contact.dis_max_m" in status["error"]
+    assert status["reused"] == ["up", "down@dis_min_m"] and status["ran"] == []
+    assert _status(tmp_path / "a") == status
+
+    status = run_job(_compose(["simulate.stride=0"]), toy, tmp_path / "b")
+    assert status["status"] == "failed" and status["stage"] == "params"
+    assert "simulate.stride" in status["error"] and status["ran"] == status["reused"] == []
+    assert "stride: 0" in (tmp_path / "b" / "params.yaml").read_text()  # kept for the report
+
+    with pytest.raises(ValueError, match="the project itself"):
+        run_job(_compose(), toy, toy)
+
+
+def test_raw_inputs_under_data_are_linked_into_the_job(tmp_path):
+    root = tmp_path / "project"
+    (root / "stages").mkdir(parents=True)
+    (root / "stages" / "copy.py").write_text(
+        "from pathlib import Path\n"
+        "Path('data/copy').mkdir(parents=True)\n"
+        "Path('data/copy/out.txt').write_text(Path('data/raw/in.txt').read_text())\n"
+    )
+    (root / "dvc.yaml").write_text(
+        "stages:\n  copy:\n    cmd: python stages/copy.py\n    deps: [data/raw]\n"
+        "    outs: [data/copy]\n"
+    )
+    (root / "params.yaml").write_text(OmegaConf.to_yaml(_compose(), resolve=True))
+    (root / "data" / "raw").mkdir(parents=True)
+    (root / "data" / "raw" / "in.txt").write_text("captured")
+
+    status = run_job(_compose(), root, tmp_path / "job")
+    assert status["status"] == "ok" and status["ran"] == ["copy"]
+    assert (tmp_path / "job" / "data" / "raw").is_symlink()
+    assert (tmp_path / "job" / "data" / "copy" / "out.txt").read_text() == "captured"
+
+
+def _show(args: list[str], monkeypatch, capsys) -> str:
+    """What ``dexflow-sweep ARGS`` prints, run in this process from the project."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    monkeypatch.chdir(ROOT)
+    monkeypatch.setattr(sys, "argv", ["dexflow-sweep", *args])
+    capsys.readouterr()
+    try:
+        main()
+    finally:
+        GlobalHydra.instance().clear()
+    return capsys.readouterr().out
+
+
+def test_the_app_composes_params_as_dvc_does(tmp_path, monkeypatch, capsys):
+    overrides = ["experiment=no_temporal", "contact.dis_min_m=0.012"]
+    shown = _show(["--cfg", "job", "--resolve", *overrides], monkeypatch, capsys)
+    composed = compose_params(overrides, tmp_path / "params.yaml", ROOT / "conf")
+    assert shown == composed.read_text()
+    hydra = _show(["--cfg", "hydra"], monkeypatch, capsys)
+    assert f"dir: {ROOT.as_posix()}/multirun/" in hydra and "chdir: true" in hydra
+
+
+# --- the real pipeline, swept with Hydra launchers (slow) ---------------------------------------
+
+
+def _copy_project(dst: Path) -> None:
+    """This project's files as the working tree holds them (tracked and new, not ignored)."""
+    listed = subprocess.run(
+        ["git", "ls-files", "--cached", "--others", "--exclude-standard"],
+        cwd=ROOT, capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    top = ("dvc.yaml", ".dvcignore", ".gitignore", "pyproject.toml")
+    for rel in listed.splitlines():
+        if (rel.startswith(("conf/", "dexflow/", "stages/", ".dvc/")) or rel in top) and (
+            ROOT / rel
+        ).is_file():
+            (dst / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / rel, dst / rel)
+
+
+def _edit(path: Path, old: str, new: str) -> None:
+    text = path.read_text()
+    assert old in text, f"{path}: no {old!r}"
+    path.write_text(text.replace(old, new))
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory) -> Path:
+    """A git + DVC copy of this project with a one-sequence demo, reproduced once."""
+    dst = tmp_path_factory.mktemp("sweep") / "project"
+    _copy_project(dst)
+    demo = dst / "conf" / "demo" / "default.yaml"
+    _edit(demo, "objects: []", "objects: [061_foam_brick]")
+    _edit(demo, "sequences_per_object: 3", "sequences_per_object: 1")
+    _edit(demo, "min_frames: 60", "min_frames: 30")
+    _edit(demo, "max_frames: 150", "max_frames: 40")
+    _edit(dst / "conf" / "simulate" / "default.yaml", "max_frames: 0", "max_frames: 3")
+    _edit(dst / "conf" / "config.yaml", "- run: local", "- run: sequential")
+    _run([sys.executable, "-m", "dexflow.cli", "params"], dst, dst)
+    for cmd in (["git", "init", "-q", "-b", "main"], ["git", "add", "-A"],
+                ["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "init"],
+                ["dvc", "repro"]):  # fmt: skip
+        _run(cmd, dst, dst)
+    return dst
+
+
+@pytest.mark.slow
+def test_joblib_sweep_reuses_upstream_and_gives_each_job_its_metrics(project, tmp_path):
+    project_contact = (project / "reports/metrics/contact.json").read_bytes()
+    sweep = tmp_path / "multirun"
+    _run([sys.executable, "-m", "dexflow.sweep", "-m", "hydra/launcher=joblib",
+          "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}",
+          "contact.dis_min_m=0.008,0.012"], project, project)  # fmt: skip
+
+    jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
+    assert [j.name for j in jobs] == ["0", "1"]
+    contacts = []
+    for job, value in zip(jobs, (0.008, 0.012), strict=True):
+        status = _status(job)
+        assert status["status"] == "ok", status
+        assert status["reused"] == UPSTREAM_OF_CONTACT
+        assert status["ran"][:2] == ["contact", "refine"] and status["ran"][-1] == "report"
+        assert load_yaml(job / "params.yaml")["contact"]["dis_min_m"] == value
+        assert f"contact.dis_min_m={value}" in (job / ".hydra" / "overrides.yaml").read_text()
+        assert (job / "data/scale_align").resolve() == (project / "data/scale_align").resolve()
+        contact = job / "reports/metrics/contact.json"
+        assert contact.is_file() and not contact.is_symlink()
+        assert (job / "reports/metrics/metrics.json").is_file()
+        contacts.append(json.loads(contact.read_text()))
+    assert contacts[0] != contacts[1]
+    assert (project / "reports/metrics/contact.json").read_bytes() == project_contact
+
+    found = collect_multirun(sweep)  # what `dexflow report ablation --multirun` reads
+    assert [e.params["contact.dis_min_m"] for e in found] == [0.008, 0.012]
+    assert all(e.error is None and "contact.changes_per_finger_s_raw" in e.metrics for e in found)
+
+
+@pytest.mark.slow
+def test_failed_jobs_are_recorded_while_the_others_complete(project):
+    _run([sys.executable, "-m", "dexflow.sweep", "-m", "simulate.stride=0,5",
+          "data.root=data/demo,data/missing"], project, project)  # fmt: skip
+
+    (sweep,) = (project / "multirun").glob("*/*")  # the default: multirun/<date>/<time>
+    by_params = {}
+    for job in sorted(p for p in sweep.iterdir() if p.is_dir()):
+        params = load_yaml(job / "params.yaml")
+        by_params[params["simulate"]["stride"], params["data"]["root"]] = (job, _status(job))
+    assert len(by_params) == 4
+
+    for root in ("data/demo", "data/missing"):
+        _, status = by_params[0, root]
+        assert status["status"] == "failed" and status["stage"] == "params"
+        assert "simulate.stride" in status["error"]
+
+    job, status = by_params[5, "data/missing"]
+    assert status["status"] == "failed" and status["stage"] == "scale_align"
+    assert status["error"] and status["reused"] == ["demo"] and status["ran"] == []
+
+    job, status = by_params[5, "data/demo"]
+    assert status == {"status": "ok", "stage": None, "error": None, "ran": [],
+                      "reused": status["reused"]}  # fmt: skip
+    stages = load_stages(project / "dvc.yaml", load_yaml(project / "params.yaml"))
+    assert status["reused"] == [s.name for s in stages]
+    assert (job / "params.yaml").read_text() == (project / "params.yaml").read_text()
+    assert (job / "reports/metrics/metrics.json").read_bytes() == (
+        project / "reports/metrics/metrics.json"
+    ).read_bytes()
