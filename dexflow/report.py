@@ -356,14 +356,57 @@ def _swept(experiments: list[Experiment]) -> list[str]:
     return [
         k
         for k in keys
-        if len({json.dumps(e.params.get(k), sort_keys=True, default=str) for e in experiments}) > 1
+        if len({_canon(e.params.get(k)) for e in experiments}) > 1
         and not k.startswith(("data.", "hydra."))
     ]
+
+
+def _canon(value) -> str:
+    return json.dumps(value, sort_keys=True, default=str)
+
+
+@dataclass
+class _Factor:
+    """Swept keys that vary together (every ``hand.*`` key when the hand is swept)."""
+
+    name: str
+    keys: list[str]
+
+    def value(self, experiment: Experiment) -> str:
+        return _canon(experiment.params.get(self.name))
+
+
+def _factors(experiments: list[Experiment]) -> list[_Factor]:
+    """The swept keys grouped into factors: keys that split the experiments the same way are
+    one factor, named by its most telling key (``*.name``, then the shortest)."""
+    by_split: dict[tuple, list[str]] = {}
+    for key in _swept(experiments):
+        labels: dict[str, int] = {}
+        split = tuple(
+            labels.setdefault(_canon(e.params.get(key)), len(labels)) for e in experiments
+        )
+        by_split.setdefault(split, []).append(key)
+    factors = []
+    for keys in by_split.values():
+        name = min(keys, key=lambda k: (not k.endswith(".name"), k.count("."), k))
+        factors.append(_Factor(name, [name, *(k for k in keys if k != name)]))
+    return sorted(factors, key=lambda f: f.name)
+
+
+def _reference(factor: _Factor, experiments: list[Experiment]) -> str:
+    """The value most experiments have (ties: the first experiment's)."""
+    values = [factor.value(e) for e in experiments]
+    return max(dict.fromkeys(values), key=values.count)
 
 
 def write_ablation(experiments: list[Experiment], out_md, figures_dir, metrics=None) -> Path:
     """Write the ablation report: per swept parameter a table (one row per value) and a plot of
     each metric against it; the best value per metric in bold.
+
+    Parameters that change together (all ``hand.*`` keys of ``hand=allegro``) are one factor,
+    shown once under its most telling key. With several factors swept, each factor's table holds
+    the experiments where every other factor is at its reference value (the value most
+    experiments share), one factor at a time; the closing table lists every experiment.
 
     Args:
         experiments: From :func:`collect_dvc` and/or :func:`collect_multirun`.
@@ -382,6 +425,7 @@ def write_ablation(experiments: list[Experiment], out_md, figures_dir, metrics=N
             for m in METHOD_LABELS
             for k in ("ssr", "pd_mm", "cd_mm", "keypoint_error_mm")
         ] + ["retarget.rms_acc", "retarget.velocity_kl", "contact.flicker_final"]
+    shown = [m for m in metrics if any(m in e.metrics for e in complete)]
     lines = [
         "# dexflow ablation report",
         "",
@@ -390,61 +434,100 @@ def write_ablation(experiments: list[Experiment], out_md, figures_dir, metrics=N
         "Best value per column in **bold**; ↑ higher is better, ↓ lower.",
         "",
     ]
-    swept = _swept(complete)
-    if not swept:
+    factors = _factors(complete)
+    if not factors:
         lines += ["No parameter differs between the complete experiments.", ""]
+    reference = {f.name: _reference(f, complete) for f in factors}
     plt = _plt()
-    for key in swept:
+    for factor in factors:
+        others = [f for f in factors if f is not factor]
+        members = [e for e in complete if all(f.value(e) == reference[f.name] for f in others)]
+        held = bool(others)
+        if len({factor.value(e) for e in members}) < 2:  # never swept alone: show every run
+            members, held = complete, False
         groups: dict[str, list[Experiment]] = {}
-        for e in complete:
-            groups.setdefault(json.dumps(e.params.get(key), default=str), []).append(e)
+        for e in members:
+            groups.setdefault(factor.value(e), []).append(e)
         values = sorted(groups, key=_sort_key)
-        shown = [m for m in metrics if any(m in e.metrics for e in complete)]
         table = {m: [_mean([e.metrics.get(m) for e in groups[v]]) for v in values] for m in shown}
-        lines += [f"## `{key}`", ""]
-        head = [_metric_label(m) for m in shown]
-        lines += ["| value | runs | " + " | ".join(head) + " |", "|---" * (len(shown) + 2) + "|"]
-        for i, v in enumerate(values):
-            cells = []
-            for m in shown:
-                cell = _cell(table[m][i], 3)
-                finite = [x for x in table[m] if math.isfinite(x)]
-                higher = METRICS.get(m.split(".")[-1], ("", False))[1]
-                distinct = len(finite) > 1 and max(finite) > min(finite)
-                best = (max if higher else min)(finite) if distinct else None
-                cells.append(f"**{cell}**" if best is not None and table[m][i] == best else cell)
-            lines.append(f"| {json.loads(v)} | {len(groups[v])} | " + " | ".join(cells) + " |")
+        lines += [f"## `{factor.name}`", ""]
+        if len(factor.keys) > 1:
+            also = ", ".join(f"`{k}`" for k in factor.keys[1:6])
+            more = f" and {len(factor.keys) - 6} more" if len(factor.keys) > 6 else ""
+            lines += [f"Changes together with {also}{more}.", ""]
+        if held:
+            at = ", ".join(f"`{f.name}` = {json.loads(reference[f.name])}" for f in others)
+            lines += [f"Other swept parameters held at {at}.", ""]
+        elif others:
+            lines += ["Other swept parameters vary within the rows (means over runs).", ""]
+        lines += _ablation_table(values, groups, table, shown)
         if shown:
-            name = "ablation_" + "".join(c if c.isalnum() else "_" for c in key) + ".png"
-            columns = min(4, len(shown))
-            rows = math.ceil(len(shown) / columns)
-            fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 2.6 * rows))
-            numeric = all(isinstance(json.loads(v), (int, float)) for v in values)
-            x = [json.loads(v) for v in values] if numeric else list(range(len(values)))
-            for ax, m in zip(np.ravel(axes), shown, strict=False):
-                ax.plot(x, table[m], marker="o")
-                ax.set_title(_metric_label(m), fontsize=8)
-                if not numeric:
-                    ax.set_xticks(x, [str(json.loads(v)) for v in values], fontsize=7)
-            for ax in np.ravel(axes)[len(shown) :]:
-                ax.axis("off")
-            fig.suptitle(key, fontsize=10)
-            fig.tight_layout()
-            _save(fig, figures_dir / name)
+            name = "ablation_" + "".join(c if c.isalnum() else "_" for c in factor.name) + ".png"
+            _ablation_plot(plt, factor.name, values, table, shown, figures_dir / name)
             rel = figures_dir.relative_to(out_md.parent) if figures_dir.is_relative_to(
                 out_md.parent) else figures_dir  # fmt: skip
-            lines += ["", f"![{key}]({rel / name})"]
+            lines += ["", f"![{factor.name}]({rel / name})"]
         lines.append("")
     plt.close("all")
-    lines += ["## Experiments", "", "| experiment | source | status | swept values |",
-              "|---|---|---|---|"]  # fmt: skip
+    overview = [m for m in ("refine.ssr", "refine.pd_mm", "retarget.keypoint_error_mm")
+                if m in shown]  # fmt: skip
+    lines += [
+        "## Experiments",
+        "",
+        "| experiment | source | status | swept values | "
+        + " | ".join(_metric_label(m) for m in overview)
+        + " |",
+        "|---" * (4 + len(overview)) + "|",
+    ]
     for e in experiments:
         status = "ok" if e in complete else f"failed: {e.error or 'no metrics'}"
-        values = ", ".join(f"{k}={e.params.get(k)}" for k in swept) or "—"
-        lines.append(f"| {e.name} | {e.source} | {status.replace('|', '/')} | {values} |")
+        values = ", ".join(f"{f.name}={e.params.get(f.name)}" for f in factors) or "—"
+        cells = [_cell(e.metrics.get(m), 3) for m in overview]
+        lines.append(
+            f"| {e.name} | {e.source} | {status.replace('|', '/')} | {values} | "
+            + " | ".join(cells)
+            + " |"
+        )
     with atomic_path(out_md) as tmp:
         tmp.write_text("\n".join(lines).rstrip() + "\n")
     return out_md
+
+
+def _ablation_table(values: list[str], groups: dict, table: dict, shown: list[str]) -> list[str]:
+    """One row per value; the best of each metric in bold where the values differ."""
+    head = [_metric_label(m) for m in shown]
+    lines = ["| value | runs | " + " | ".join(head) + " |", "|---" * (len(shown) + 2) + "|"]
+    for i, v in enumerate(values):
+        cells = []
+        for m in shown:
+            cell = _cell(table[m][i], 3)
+            finite = [x for x in table[m] if math.isfinite(x)]
+            higher = METRICS.get(m.split(".")[-1], ("", False))[1]
+            distinct = len(finite) > 1 and max(finite) > min(finite)
+            best = (max if higher else min)(finite) if distinct else None
+            cells.append(f"**{cell}**" if best is not None and table[m][i] == best else cell)
+        lines.append(f"| {json.loads(v)} | {len(groups[v])} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _ablation_plot(plt, key: str, values: list[str], table: dict, shown: list[str], path) -> None:
+    """Each metric against the factor's value (categorical axis for non-numbers)."""
+    columns = min(4, len(shown))
+    rows = math.ceil(len(shown) / columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 2.6 * rows), squeeze=False)
+    parsed = [json.loads(v) for v in values]
+    numeric = all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in parsed)
+    x = parsed if numeric else list(range(len(values)))
+    for ax, m in zip(np.ravel(axes), shown, strict=False):
+        ax.plot(x, table[m], marker="o")
+        ax.set_title(_metric_label(m), fontsize=8)
+        if not numeric:
+            ax.set_xticks(x, [str(v) for v in parsed], fontsize=7)
+    for ax in np.ravel(axes)[len(shown) :]:
+        ax.axis("off")
+    fig.suptitle(key, fontsize=10)
+    fig.tight_layout()
+    _save(fig, path)
 
 
 def _metric_label(key: str) -> str:

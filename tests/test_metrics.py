@@ -157,6 +157,44 @@ def test_ablation_report_with_failed_and_partial_experiments(tmp_path):
     assert (tmp_path / "figures" / "ablation_contact_dis_min_m.png").stat().st_size > 5000
 
 
+def _run_of(name, hand, dis_min, ssr):
+    params = {"hand.name": hand, "hand.scale": {"shadow": 1.11, "allegro": 1.67}[hand],
+              "contact.dis_min_m": dis_min, "seed": 0}  # fmt: skip
+    return Experiment(name, "dvc", params, {"refine.ssr": ssr})
+
+
+def test_ablation_groups_covarying_keys_and_holds_the_other_factors(tmp_path):
+    experiments = [
+        _run_of("s8", "shadow", 0.008, 10.0),
+        _run_of("s10", "shadow", 0.010, 20.0),
+        _run_of("s12", "shadow", 0.012, 30.0),
+        _run_of("a10", "allegro", 0.010, 90.0),
+    ]
+    text = write_ablation(experiments, tmp_path / "ablation.md", tmp_path / "figures").read_text()
+    sections = [line for line in text.splitlines() if line.startswith("## `")]
+    assert sections == ["## `contact.dis_min_m`", "## `hand.name`"]  # hand.scale goes with hand
+    hand = text.split("## `hand.name`")[1].split("\n## ")[0]
+    assert "Changes together with `hand.scale`" in hand
+    assert "held at `contact.dis_min_m` = 0.01" in hand
+    rows = {
+        r.split("|")[1].strip(): r
+        for r in hand.splitlines()
+        if r.startswith("| ") and "runs" not in r
+    }
+    assert sorted(rows) == ["allegro", "shadow"]
+    assert "20.000" in rows["shadow"] and "**90.000**" in rows["allegro"]  # shadow at 0.01 only
+    dis = text.split("## `contact.dis_min_m`")[1].split("\n## ")[0]
+    assert "held at `hand.name` = shadow" in dis
+    rows = [r for r in dis.splitlines() if r.startswith("| 0.0")]
+    assert [r.split("|")[2].strip() for r in rows] == [
+        "1",
+        "1",
+        "1",
+    ]  # the allegro run is not mixed in
+    assert "**30.000**" in rows[2]
+    assert "| a10 | dvc | ok | contact.dis_min_m=0.01, hand.name=allegro | 90.000 |" in text
+
+
 def test_collect_dvc_and_multirun(tmp_path):
     show = [
         {
