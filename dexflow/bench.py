@@ -344,7 +344,7 @@ def bench_pipeline(
 
     lines = _bench_table(runs, sequences, len(objects))
     machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"
-    lines.insert(4, f"Machine: {machine}. Wall-clock seconds; other load on the machine counts.")
+    lines[4:4] = [f"Machine: {machine}. Wall-clock seconds; other load on the machine counts.", ""]
     text = "\n".join(lines) + "\n"
     print(text)
     if out:
@@ -417,6 +417,14 @@ def _bench_table(runs: list[dict], sequences: int, objects: int) -> list[str]:
         + " | ".join(f"**{t:.1f} s, {frames / t:.1f} f/s**" for t in totals)
         + f" | **{totals[0] / totals[-1]:.2f}x** |"
     )
+    shares = sorted(((v, k) for k, v in last["seconds"].items() if k != "demo"), reverse=True)
+    simulate = sum(v for k, v in last["seconds"].items() if k.startswith("simulate"))
+    top = ", ".join(f"{k} {100 * v / totals[-1]:.0f} %" for v, k in shares[:3])
+    lines += [
+        "",
+        f"Largest shares with {last['workers']} workers: {top}; the three simulate stages "
+        f"together {100 * simulate / totals[-1]:.0f} %.",
+    ]
     per_object = last["seconds"]["scale_align"] / objects
     per_frame = (totals[-1] - last["seconds"]["scale_align"]) / frames
     estimate = per_frame * PAPER_FRAMES + per_object * 50

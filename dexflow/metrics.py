@@ -67,6 +67,8 @@ __all__ = [
 
 METHODS = ("baseline", "retarget", "refine")
 TIPS = (4, 8, 12, 16, 20)  # MANO fingertips
+# The upstream outputs the stage reads (keys of ``roots``); sequences are listed from the first
+STAGE_INPUTS = ("retarget", "baseline", "refine", "contact", "scale_align", "simulate")
 
 
 @dataclass
@@ -317,15 +319,19 @@ def run_metrics(params, roots: dict[str, Path], out_root, plots_root) -> dict:
     """
     from dexflow.config import project_root
     from dexflow.hands.robot import cached_hand
-    from dexflow.io.atomic import atomic_path
+    from dexflow.io.atomic import atomic_path, save_npz
     from dexflow.io.sequence import load_sequence
-    from dexflow.parallel import map_items
+    from dexflow.resume import StageOutput
 
     roots = {k: Path(v) for k, v in roots.items()}
     out_root, plots_root = Path(out_root), Path(plots_root)
-    files = sorted((roots["retarget"] / "sequences").glob("*.npz"))
-    if not files:
-        raise FileNotFoundError(f"{roots['retarget'] / 'sequences'}: no *.npz sequence files")
+    stage = StageOutput(
+        out_root,
+        "metrics",
+        {"hand": params.hand, "metrics": params.metrics},
+        inputs=[roots[k] for k in STAGE_INPUTS],
+    )
+    files = stage.start()
     spec, base_dir, mp = params.hand, project_root() / "conf" / "hand", params.metrics
     simulated = {m: _simulation(roots["simulate"] / m) for m in METHODS}
 
@@ -364,16 +370,16 @@ def run_metrics(params, roots: dict[str, Path], out_root, plots_root) -> dict:
             entry["contact"]["tp"] = int(np.count_nonzero(final & truth))
             entry["contact"]["fp"] = int(np.count_nonzero(final & ~truth))
             entry["contact"]["fn"] = int(np.count_nonzero(~final & truth))
-        entry["per_frame"] = {
-            "time": np.arange(len(seq.obj_pose)) / seq.fps,
-            "contact": final,
-            **{m: per_frame[m] for m in METHODS},
-        }
+        arrays = {"time": np.arange(len(seq.obj_pose)) / seq.fps, "contact": final}
+        for method in METHODS:
+            arrays |= {f"{method}.{k}": v for k, v in per_frame[method].items()}
+        save_npz(out_root / "sequences" / name, arrays)
         return entry
 
-    results = map_items(one, files, params.run, "metrics")
+    results = stage.map(one, files, params.run)
     entries = {r.item.stem: r for r in results}
-    ok = {name: r.value for name, r in entries.items() if r.ok}
+    ok = {name: r.value | {"per_frame": _per_frame(out_root, name)}
+          for name, r in entries.items() if r.ok}  # fmt: skip
     summary = _aggregate(ok)
     summary["num_sequences"] = len(files)
     summary["num_failed"] = len(files) - len(ok)
@@ -386,7 +392,20 @@ def run_metrics(params, roots: dict[str, Path], out_root, plots_root) -> dict:
         )
         for name, r in sorted(entries.items())
     }
+    stage.finish(summary)
     return summary
+
+
+def _per_frame(out_root: Path, name: str) -> dict:
+    """A sequence's per-frame arrays as the metrics stage saved them
+    (``out_root/sequences/<name>.npz``): ``time``, ``contact`` and one dict per method."""
+    with np.load(out_root / "sequences" / f"{name}.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    out: dict = {"time": arrays.pop("time"), "contact": arrays.pop("contact")}
+    for key, value in arrays.items():
+        method, _, metric = key.partition(".")
+        out.setdefault(method, {})[metric] = value
+    return out
 
 
 def _aggregate(ok: dict[str, dict]) -> dict:
