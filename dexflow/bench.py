@@ -188,6 +188,26 @@ def bench_retarget(
     return rows
 
 
+def _refined_sequences(count: int) -> list[tuple]:
+    """``count`` refined demo sequences spread over ``data/refine`` (needs ``dvc repro``): per
+    sequence its refined file, the aligned sequence, its object directory and contact arrays."""
+    from pathlib import Path
+
+    from dexflow.io.sequence import load_sequence
+
+    files = sorted(Path("data/refine/sequences").glob("*.npz"))
+    if not files:
+        raise FileNotFoundError("data/refine: no sequences; run `dvc repro` first")
+    out = []
+    for path in files[:: max(1, len(files) // count)][:count]:
+        aligned = Path("data/scale_align")
+        seq = load_sequence(aligned / "sequences" / path.name, data_root=aligned)
+        with np.load(Path("data/contact/sequences") / path.name) as data:
+            contact = {k: data[k] for k in data.files}
+        out.append((path, seq, (aligned / seq.obj_mesh).parent, contact))
+    return out
+
+
 def bench_refine(
     hand_name: str = "shadow", sequences: int = 4, loop_frames: int = 20
 ) -> list[dict]:
@@ -197,29 +217,18 @@ def bench_refine(
 
     from dexflow.config import load_params
     from dexflow.hands.robot import load_hand
-    from dexflow.io.sequence import load_sequence
     from dexflow.objects.sdf import SignedDistanceGrid
     from dexflow.refine import TorchSDF, refine_trajectory
 
     torch.set_num_threads(1)
     params = load_params("params.yaml").refine
     hand = load_hand(hand_name)
-    files = sorted(Path("data/refine/sequences").glob("*.npz"))
-    if not files:
-        raise FileNotFoundError("data/refine: no sequences; run `dvc repro` first")
-    files = files[:: max(1, len(files) // sequences)][:sequences]
     jobs = []
-    for path in files:
-        seq = load_sequence(
-            Path("data/scale_align/sequences") / path.name, data_root="data/scale_align"
-        )
+    for path, seq, object_dir, contact_data in _refined_sequences(sequences):
         q0 = np.load(Path("data/retarget/dexflow/sequences") / path.name)["q"]
-        with np.load(Path("data/contact/sequences") / path.name) as data:
-            contact, cmap = data["final"], {k: data[k] for k in data.files if k.startswith("map_")}
-        sdf = TorchSDF(
-            SignedDistanceGrid.load((Path("data/scale_align") / seq.obj_mesh).parent / "sdf.npz")
-        )
-        jobs.append((q0, seq.obj_pose, sdf, contact, cmap))
+        cmap = {k: v for k, v in contact_data.items() if k.startswith("map_")}
+        sdf = TorchSDF(SignedDistanceGrid.load(object_dir / "sdf.npz"))
+        jobs.append((q0, seq.obj_pose, sdf, contact_data["final"], cmap))
 
     start = time.perf_counter()
     for q0, pose, sdf, contact, cmap in jobs:
@@ -249,32 +258,19 @@ def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 
     first contact: the stage's protocol with early exits against the same frames run through all
     six full-length tests, measured in the same run. Needs `dvc repro`."""
     import dataclasses
-    from pathlib import Path
 
     from dexflow.config import load_params
     from dexflow.hands.robot import load_hand
-    from dexflow.io.sequence import load_sequence
     from dexflow.simulate import GraspWorld, hand_urdf
 
     torch.set_num_threads(1)
     params = load_params("params.yaml").simulate
     hand = load_hand(hand_name)
-    files = sorted(Path("data/refine/sequences").glob("*.npz"))
-    if not files:
-        raise FileNotFoundError("data/refine: no sequences; run `dvc repro` first")
-    files = files[:: max(1, len(files) // sequences)][:sequences]
     jobs = []
-    for path in files:
-        seq = load_sequence(
-            Path("data/scale_align/sequences") / path.name, data_root="data/scale_align"
-        )
-        q = np.load(path)["q"]
-        with np.load(Path("data/contact/sequences") / path.name) as data:
-            contact = np.flatnonzero(data["final"].any(axis=1))
+    for path, seq, object_dir, contact_data in _refined_sequences(sequences):
+        contact = np.flatnonzero(contact_data["final"].any(axis=1))
         picked = np.linspace(contact[0], contact[-1], frames).round().astype(int)
-        jobs.append(
-            ((Path("data/scale_align") / seq.obj_mesh).parent / "convex.obj", q, seq, picked)
-        )
+        jobs.append((object_dir / "convex.obj", np.load(path)["q"], seq, picked))
 
     def run(p) -> tuple[float, int]:
         world = GraspWorld(hand, hand_urdf(hand), p)
