@@ -187,13 +187,16 @@ class SelfCollision:
         points, frames = cache["points"], cache["frames"]
         link, kind, data, (center, radius) = self.shapes[s]
         t = frames[:, self.links.index(link)]
+        rot, pos = t[:, :3, :3], t[:, :3, 3]
         candidates = points[:, mask]  # (T, M, 3)
-        local = np.einsum("tji,tmj->tmi", t[:, :3, :3], candidates - t[:, None, :3, 3])
-        near = np.sum((local - center) ** 2, axis=-1) < radius**2  # bounding-sphere cull
+        center_world = rot @ center + pos  # (T, 3)
+        near = np.sum((candidates - center_world[:, None]) ** 2, axis=-1) < radius**2  # cull
         out = np.zeros(points.shape[:2])
         if not near.any():
             return out
-        x = local[near]  # (K, 3)
+        rows, cols = np.nonzero(near)
+        # only the points near the shape go to its frame: x = Rᵀ (p - o)
+        x = ((candidates[rows, cols] - pos[rows])[:, None, :] @ rot[rows])[:, 0]  # (K, 3)
         if kind == "capsule":
             a, b, r = data
             ab = b - a
