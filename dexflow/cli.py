@@ -12,7 +12,7 @@ Subcommands:
   view SEQUENCE [--trajectory T] [--open]
                                     write a rerun recording (.rrd) of a sequence
   report summary                    reports/summary.md from the metrics (the `report` stage)
-  report ablation [--dvc] [--multirun DIR ...]
+  report ablation [--dvc] [--rev REV | --all-commits] [--multirun DIR ...]
                                     reports/ablation.md across experiments
 """
 
@@ -168,12 +168,16 @@ def _cmd_report(args: argparse.Namespace) -> int:
     experiments = []
     use_dvc = args.dvc or not args.multirun
     if use_dvc:
-        command = ["dvc", "exp", "show", "--json"] + (["-A"] if args.all_commits else [])
+        command = ["dvc", "exp", "show", "--json"]
+        command += ["-A"] if args.all_commits else ["--rev", args.rev] if args.rev else []
         done = subprocess.run(command, capture_output=True, text=True)
         if done.returncode != 0:
-            logging.error("dvc exp show --json failed: %s", done.stderr.strip())
+            logging.error("%s failed: %s", " ".join(command), done.stderr.strip())
             return 1
-        experiments += report.collect_dvc(json.loads(done.stdout or "[]"))
+        show = json.loads(done.stdout or "[]")
+        if args.rev:  # the workspace is not derived from that baseline
+            show = [node for node in show if node.get("rev") != "workspace"]
+        experiments += report.collect_dvc(show)
     for folder in args.multirun or []:
         if not Path(folder).is_dir():
             logging.error("%s: no such multirun directory", folder)
@@ -265,6 +269,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dvc", action="store_true", help="ablation: read `dvc exp show --json`")
     p.add_argument(
         "--all-commits", action="store_true", help="ablation: experiments of all commits"
+    )
+    p.add_argument(
+        "--rev", help="ablation: experiments derived from this baseline commit (default HEAD)"
     )
     p.add_argument("--multirun", nargs="*", help="ablation: Hydra multirun directories")
     p.add_argument("--out", help="output Markdown file")

@@ -289,13 +289,16 @@ def collect_dvc(show: list | dict) -> list[Experiment]:
     """Experiments from the output of ``dvc exp show --json`` (DVC 3)."""
     found: list[Experiment] = []
 
-    def visit(node, name_hint: str) -> None:
+    def visit(node, name_hint: str, state: str | None = None) -> None:
         if isinstance(node, list):
             for item in node:
-                visit(item, name_hint)
+                visit(item, name_hint, state)
             return
         if not isinstance(node, dict):
             return
+        executor = node.get("executor")
+        if isinstance(executor, dict) and executor.get("state"):
+            state = executor["state"]  # queued, running, success, failed
         data = node.get("data")
         if isinstance(data, dict) and ("params" in data or "metrics" in data):
             name = node.get("name") or data.get("name") or node.get("rev") or name_hint
@@ -306,10 +309,12 @@ def collect_dvc(show: list | dict) -> list[Experiment]:
             error = node.get("error") or data.get("error")
             if isinstance(error, dict):
                 error = error.get("msg") or json.dumps(error)
+            if error is None and state not in (None, "success"):
+                error = f"{state}, not finished (its metrics would be the baseline's)"
             found.append(Experiment(str(name), "dvc", params, metrics, error))
         for key in ("experiments", "revs"):
             if key in node:
-                visit(node[key], name_hint)
+                visit(node[key], name_hint, state)
 
     visit(show, "workspace")
     unique, seen, contents = [], set(), {}

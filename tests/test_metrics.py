@@ -213,6 +213,10 @@ def test_collect_dvc_and_multirun(tmp_path):
                                 "reports/metrics/contact.json": {"data": {"f": {"g": 1}}}}}}]},
                 {"revs": [{"rev": "e2", "name": "exp-bad", "error": {"msg": "failed"},
                            "data": {"params": {}, "metrics": {}}}]},
+                {"executor": {"state": "running"}, "name": "exp-running",
+                 "revs": [{"rev": "e3", "name": "exp-running", "data": {
+                     "params": {"params.yaml": {"data": {"contact": {"dis_min_m": 0.012}}}},
+                     "metrics": {"reports/metrics/metrics.json": {"data": {"refine.ssr": 5.0}}}}}]},
             ],
         },
     ]  # fmt: skip
@@ -220,6 +224,7 @@ def test_collect_dvc_and_multirun(tmp_path):
     assert found["exp-one"].params["contact.dis_min_m"] == 0.008
     assert found["exp-one"].metrics == {"refine.ssr": 7.0, "contact.f.g": 1.0}
     assert found["exp-bad"].error == "failed"
+    assert found["exp-running"].error.startswith("running, not finished")  # baseline's metrics
     for i, value in enumerate((0.008, 0.012)):
         job = tmp_path / "multirun" / str(i)
         (job / "reports" / "metrics").mkdir(parents=True)
