@@ -186,6 +186,23 @@ def test_resume_reuses_done_items_sweeps_the_rest_and_finish_leaves_only_outputs
     assert str(tmp_path) not in (out / STAGE_FILE).read_text()  # no absolute paths
 
 
+def test_largest_inputs_go_first_and_results_keep_the_input_order(tmp_path):
+    in_root = tmp_path / "in"
+    (in_root / "sequences").mkdir(parents=True)
+    for name, frames in (("a", 10), ("b", 1000), ("c", 100)):
+        np.savez(in_root / "sequences" / f"{name}.npz", x=np.zeros(frames))
+    stage = StageOutput(tmp_path / "out", "toy", {}, inputs=(in_root,))
+    calls: list[str] = []
+
+    def one(path: Path) -> dict:
+        calls.append(path.stem)
+        return {"name": path.stem}
+
+    results = stage.map(one, stage.start(), 1)
+    assert calls == ["b", "c", "a"]  # the longest sequence first
+    assert [r.value["name"] for r in results] == ["a", "b", "c"]
+
+
 # --- stages ---------------------------------------------------------------------------------
 
 
