@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 
 import numpy as np
@@ -21,7 +22,13 @@ from dexflow.metrics import (
     trajectory_metrics,
 )
 from dexflow.objects.sdf import SignedDistanceGrid
-from dexflow.report import Experiment, collect_dvc, collect_multirun, write_ablation
+from dexflow.report import (
+    Experiment,
+    collect_dvc,
+    collect_multirun,
+    write_ablation,
+    write_summary,
+)
 
 
 @pytest.fixture(scope="module")
@@ -130,6 +137,58 @@ def test_self_penetration_and_feasibility(allegro):
 
 
 # ------------------------------------------------------------------------------------ reports
+
+
+def _metrics_dir(root, methods=("baseline", "retarget", "refine")):
+    """What the metrics and simulate stages leave for the report: aggregates, one simulate
+    summary per method, the per-sequence table and the per-frame CSVs."""
+    metrics = root / "metrics"
+    metrics.mkdir(parents=True)
+    aggregates = {"num_sequences": 2, "num_failed": 0}
+    for i, m in enumerate(("baseline", "retarget", "refine")):
+        aggregates |= {f"{m}.ssr": 10.0 * i, f"{m}.pd_mm": 3.0 - i, f"{m}.rms_acc": 1.5}
+    (metrics / "metrics.json").write_text(json.dumps(aggregates))
+    for i, m in enumerate(methods):
+        sim = {"ssr": 10.0 * i, "ssr_raw": 40.0 + i, "ssr_bench": 0.0, "ssr_bench_raw": 5.0,
+               "frames_evaluated": 100 + i, "penetration_mean_mm": 2.5, "over_tolerance": 0.25}  # fmt: skip
+        (metrics / f"simulate_{m}.json").write_text(json.dumps(sim))
+    with open(root / "sequences.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["sequence", "object", "hand", "method", "ssr", "pd_mm", "cd_mm",
+                         "keypoint_error_mm"])  # fmt: skip
+        for seq, obj in (("mug__00", "025_mug"), ("box__00", "003_cracker_box")):
+            for i, m in enumerate(("baseline", "retarget", "refine")):
+                writer.writerow([seq, obj, "shadow", m, 50.0 * (i % 2), 3 - i, 2.0, 7.0])
+    plots = root / "plots"
+    plots.mkdir()
+    for name in ("keypoint_error.csv", "penetration.csv"):
+        rows = ["step,sequence,frame,time_s,baseline,retarget,refine"]
+        rows += [f"{t},mug__00,{t},{t / 30:.4f},{t},{t + 1},{t + 2}" for t in range(5)]
+        (plots / name).write_text("\n".join(rows) + "\n")
+    return metrics, root / "sequences.csv", plots
+
+
+def _section(text: str, title: str) -> str:
+    return text.split(f"## {title}")[1].split("\n## ")[0]
+
+
+def test_summary_tables_simulation_and_figures(tmp_path):
+    metrics, table, plots = _metrics_dir(tmp_path, methods=("baseline", "refine"))
+    out = write_summary(metrics, table, plots, tmp_path / "summary.md", tmp_path / "figures")
+    text = out.read_text()
+    assert "Hand: **shadow**. Sequences: 2 (0 failed)" in text
+    grasp = _section(text, "Grasp quality")
+    assert "| DexFlow + refinement | 20.00 |" in grasp and "| *paper: DexFlow* | 40.32 |" in grasp
+    sim = _section(text, "Simulation").splitlines()
+    refine = next(r for r in sim if r.startswith("| DexFlow + refinement"))
+    assert refine.split("|")[1:9] == [" DexFlow + refinement ", " 10.00 ", " 41.00 ", " 0.00 ",
+                                      " 5.00 ", " 101 ", " 2.50 ", " 25 "]  # fmt: skip
+    assert next(r for r in sim if r.startswith("| DexFlow retargeting")).count("—") == 7
+    objects = _section(text, "Per object")
+    assert objects.index("003_cracker_box") < objects.index("025_mug")
+    for name in ("summary_methods.png", "summary_objects_pd.png", "summary_timeline.png"):
+        assert f"(figures/{name})" in text
+        assert (tmp_path / "figures" / name).stat().st_size > 5000
 
 
 def _exp(name, value, ssr=None, error=None, source="dvc"):
