@@ -7,8 +7,9 @@ followers follow their leaders) and a finger without contact in a frame is left 
     E = E_dis + w_pen E_pen + w_align E_align + w_spen E_spen + w_joints E_joints (+ w_smooth E_smooth)
 
 - ``E_dis = Σ ||p_i - o_i||²``: the finger's contact points (contact map) to their object points;
-- ``E_pen = Σ max(0, -sd(p))²`` over the finger's surface points (signed distance grid of the
-  object, trilinear and differentiable; negative inside);
+- ``E_pen = Σ max(0, m - sd(p))²`` over the finger's surface points (signed distance grid of
+  the object, trilinear and differentiable; negative inside), ``m = pen_margin_m`` (0: only
+  points inside count; a small margin makes up for the gaps between sampled points);
 - ``E_align = Σ (1 + n_i · n_Oi)²``: the hand surface normal at a contact point against the object's
   outward normal there; a flush contact (the normals opposite) scores 0;
 - ``E_spen = Σ max(δ - ||p - q||, 0)`` between the finger's points and the other fingers' and
@@ -58,6 +59,7 @@ class RefineParams:
     w_joints: float = 1e-4
     w_smooth: float = 0.1
     spen_delta_m: float = 0.005
+    pen_margin_m: float = 0.001
     spen_points: int = 64
     iterations: int = 30
     learning_rate: float = 0.03
@@ -174,6 +176,7 @@ def energy_terms(
     fixed_others: torch.Tensor,
     sdf: TorchSDF,
     spen_delta_m: float,
+    pen_margin_m: float = 0.0,
 ) -> dict[str, torch.Tensor]:
     """Unweighted energies (B,) of one finger at configurations ``q (B, dof)``.
 
@@ -185,6 +188,7 @@ def energy_terms(
             normal in the object frame.
         spen_rows: (S,) finger points (into ``finger_idx``) checked against ``fixed_others``.
         fixed_others: (B, O, 3) other fingers' and palm points, world.
+        pen_margin_m: Points closer to the surface than this (or inside) count in ``pen``.
     """
     rows, hand_rows, obj_pts, obj_nrm = contacts
     points, normals = hand.surface_points(hand.apply_couplings(q), finger_idx)
@@ -196,7 +200,7 @@ def energy_terms(
         p, n = local[rows, hand_rows], normals_obj[rows, hand_rows]
         dis = zero.index_add(0, rows, ((p - obj_pts) ** 2).sum(-1))
         align = zero.index_add(0, rows, (1 + (n * obj_nrm).sum(-1)) ** 2)
-    pen = (torch.relu(-sdf(local)) ** 2).sum(-1)
+    pen = (torch.relu(pen_margin_m - sdf(local)) ** 2).sum(-1)
     d = torch.cdist(points[:, spen_rows], fixed_others)
     spen = torch.relu(spen_delta_m - d).sum((-1, -2))
     return {"dis": dis, "pen": pen, "align": align, "spen": spen}
@@ -257,8 +261,9 @@ def _refine_finger(
         qf = base.clone()
         qf[:, joints] = theta
         terms = energy_terms(
-            hand, qf, finger_idx, inv_f, contacts, spen_rows, fixed_others, sdf, params.spen_delta_m
-        )
+            hand, qf, finger_idx, inv_f, contacts, spen_rows, fixed_others, sdf,
+            params.spen_delta_m, params.pen_margin_m,
+        )  # fmt: skip
         e = sum(weights[k] * v for k, v in terms.items())
         e = e + params.w_joints * ((theta - theta0) ** 2).sum(-1)
         if per_frame:

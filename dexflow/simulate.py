@@ -104,12 +104,11 @@ class SimulateParams:
 
 
 def object_parts(path: str | Path) -> list[np.ndarray]:
-    """Vertices (V, 3) of every convex part of a ``convex.obj`` (one ``o`` group per part)."""
-    scene = trimesh.load(Path(path), force="scene", process=False, group_material=False)
-    parts = [np.asarray(g.vertices, dtype=float) for g in scene.geometry.values()]
-    if not parts:
-        raise ValueError(f"{path}: no convex parts")
-    return parts
+    """Vertices (V, 3) of every convex part of a ``convex.obj`` (one ``o`` group per part, as
+    pybullet reads it: a compound of convex shapes)."""
+    from dexflow.objects.convex import read_convex_obj
+
+    return read_convex_obj(path)
 
 
 def _mass_frame(parts: list[np.ndarray], mass: float) -> tuple[np.ndarray, np.ndarray]:

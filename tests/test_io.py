@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 
 from dexflow.errors import SequenceFormatError
 from dexflow.io import atomic
+from dexflow.io.atomic import save_json
 from dexflow.io.sequence import load_sequence, save_sequence, validate_sequence
 
 
@@ -148,3 +150,9 @@ def test_interrupted_save_leaves_no_partial_file(tmp_path, sequence, monkeypatch
         save_sequence(new_path, sequence)
     assert not new_path.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["seq.npz"]
+
+
+def test_save_json_writes_undefined_metrics_as_null(tmp_path):
+    path = tmp_path / "metrics.json"
+    save_json(path, {"cd_mm": float("nan"), "n": np.int64(3), "rows": [np.float64(0.5), np.inf]})
+    assert json.loads(path.read_text()) == {"cd_mm": None, "n": 3, "rows": [0.5, None]}

@@ -42,7 +42,7 @@ def _index_distance(hand, q, pose, grid):
     return per_finger[:, list(hand.spec.fingers).index("index")]
 
 
-def _refine(hand, q, pose, box, grid, contact):
+def _refine(hand, q, pose, box, grid, contact, pen_margin_m=0.001):
     _, dist, local = finger_distances(hand, q, pose, grid)
     points, faces = trimesh.sample.sample_surface(box, 4000, seed=0)
     cmap = _contact_map(
@@ -54,7 +54,7 @@ def _refine(hand, q, pose, box, grid, contact):
         box.face_normals[faces],
         8,
     )
-    params = RefineParams(blend_frames=0.0, iterations=80)
+    params = RefineParams(blend_frames=0.0, iterations=80, pen_margin_m=pen_margin_m)
     q1, e0, e1 = refine_trajectory(hand, q, pose, TorchSDF(grid), contact, cmap, params)
     return q1, e0, e1
 
@@ -75,6 +75,20 @@ def test_contact_finger_is_brought_to_the_surface(allegro, gap, label):
     # Only the index finger's joints moved.
     moved = np.flatnonzero(np.abs(q1 - q).max(axis=0) > 1e-12)
     assert set(moved) <= set(allegro.fingers["index"]) and len(moved) > 0
+
+
+def test_penetration_margin_keeps_the_pad_off_the_surface(allegro):
+    """Sampled surface points miss the deepest point between them; the margin makes up for it:
+    the larger the margin, the farther outside the refined pad stays."""
+    q, pose, box, grid = _scene(allegro, -0.005)
+    contact = np.zeros((FRAMES, 4), dtype=bool)
+    contact[:, list(allegro.spec.fingers).index("index")] = True
+    gaps = {}
+    for margin in (0.0, 0.003):
+        q1, _, _ = _refine(allegro, q, pose, box, grid, contact, pen_margin_m=margin)
+        gaps[margin] = _index_distance(allegro, q1, pose, grid)
+    assert np.all(gaps[0.003] > gaps[0.0] + 0.001), gaps
+    assert np.all(gaps[0.003] > 0.0) and np.all(gaps[0.003] < 0.004), gaps
 
 
 def test_finger_without_contact_does_not_move(allegro):

@@ -10,7 +10,14 @@ import trimesh
 
 from dexflow.hands import load_hand
 from dexflow.objects.convex import write_convex_obj
-from dexflow.simulate import GraspWorld, SimulateParams, hand_urdf, simulate_sequence
+from dexflow.simulate import (
+    GraspWorld,
+    SimulateParams,
+    _mass_frame,
+    hand_urdf,
+    object_parts,
+    simulate_sequence,
+)
 
 from .test_hands import _gripper
 
@@ -123,3 +130,19 @@ def test_penetrating_start_does_not_count_and_sequence_logic(scene):
     assert result["success_frame"] == 3 and result["evaluated"] == 2
     _, none = simulate_sequence(world_1, q, poses, first_contact=-1)
     assert none["evaluated"] == 0 and not none["success_contact"]
+
+
+def test_convex_parts_round_trip_and_mass_frame_of_the_union(tmp_path):
+    """Two separate cubes (an L-shaped object's parts): read back as two parts, and the centre
+    of mass lies between them, not at the centre of one hull around both."""
+    small = trimesh.creation.box((0.02, 0.02, 0.02))
+    big = trimesh.creation.box((0.04, 0.04, 0.04))
+    big.apply_translation((0.1, 0.0, 0.0))
+    write_convex_obj(tmp_path / "two.obj", [small, big])
+    parts = object_parts(tmp_path / "two.obj")
+    assert [len(p) for p in parts] == [8, 8]
+    np.testing.assert_allclose(parts[1].mean(axis=0), (0.1, 0.0, 0.0), atol=1e-7)
+    frame, moments = _mass_frame(parts, mass=1.0)
+    # volumes 8e-6 and 64e-6 m³: the centre of mass is 8/9 of the way to the big cube
+    np.testing.assert_allclose(frame[:3, 3], (0.1 * 64 / 72, 0.0, 0.0), atol=1e-9)
+    assert np.all(moments > 0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import tempfile
 from collections.abc import Iterator
@@ -49,8 +50,26 @@ def save_npz(path: str | Path, arrays: dict[str, Any]) -> None:
         np.savez(handle, **arrays)
 
 
+def _json_ready(obj: Any) -> Any:
+    """``obj`` with NaN and infinities as None (JSON has no such numbers) and numpy scalars
+    as Python ones."""
+    if isinstance(obj, dict):
+        return {key: _json_ready(value) for key, value in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_ready(value) for value in obj]
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
 def save_json(path: str | Path, obj: Any) -> None:
-    """Write ``obj`` as indented, key-sorted JSON atomically (deterministic bytes)."""
-    text = json.dumps(obj, indent=2, sort_keys=True, allow_nan=False) + "\n"
+    """Write ``obj`` as indented, key-sorted JSON atomically (deterministic bytes).
+
+    A metric that is undefined (NaN, e.g. contact distance of a sequence without contact) is
+    written as ``null``, which DVC shows as missing.
+    """
+    text = json.dumps(_json_ready(obj), indent=2, sort_keys=True, allow_nan=False) + "\n"
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")

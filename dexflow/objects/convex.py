@@ -9,7 +9,7 @@ import trimesh
 
 from dexflow.io.atomic import atomic_path
 
-__all__ = ["convex_decomposition", "write_convex_obj"]
+__all__ = ["convex_decomposition", "read_convex_obj", "write_convex_obj"]
 
 
 def convex_decomposition(
@@ -57,3 +57,27 @@ def write_convex_obj(path: str | Path, parts: list[trimesh.Trimesh]) -> None:
         offset += len(part.vertices)
     with atomic_path(path) as tmp:
         tmp.write_text("\n".join(lines) + "\n")
+
+
+def read_convex_obj(path: str | Path) -> list[np.ndarray]:
+    """The vertices (V, 3) of every part of an OBJ written by :func:`write_convex_obj` (or any
+    OBJ with one ``o``/``g`` group per convex part; a file without groups is one part).
+
+    Raises:
+        ValueError: the file holds no vertices.
+    """
+    parts: list[list[list[float]]] = []
+    current: list[list[float]] | None = None
+    for line in Path(path).read_text().splitlines():
+        tag, _, rest = line.partition(" ")
+        if tag in ("o", "g"):
+            current = None
+        elif tag == "v":
+            if current is None:
+                current = []
+                parts.append(current)
+            current.append([float(x) for x in rest.split()[:3]])
+    out = [np.asarray(vertices, dtype=float) for vertices in parts if vertices]
+    if not out:
+        raise ValueError(f"{path}: no vertices (expected one group of vertices per convex part)")
+    return out
