@@ -517,7 +517,7 @@ def write_ablation(experiments: list[Experiment], out_md, figures_dir, metrics=N
     for e in experiments:
         status = "ok" if e in complete else f"failed: {e.error or 'no metrics'}"
         values = ", ".join(f"{f.name}={e.params.get(f.name)}" for f in factors) or "—"
-        cells = [_cell(e.metrics.get(m), 3) for m in overview]
+        cells = [_cell(e.metrics.get(m) if e in complete else None, 3) for m in overview]
         lines.append(
             f"| {e.name} | {e.source} | {status.replace('|', '/')} | {values} | "
             + " | ".join(cells)
