@@ -554,10 +554,12 @@ def _ablation_plot(plt, key: str, values: list[str], table: dict, shown: list[st
     numeric = all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in parsed)
     x = parsed if numeric else list(range(len(values)))
     for ax, m in zip(np.ravel(axes), shown, strict=False):
-        ax.plot(x, table[m], marker="o")
-        ax.set_title(_metric_label(m), fontsize=8)
-        if not numeric:
+        if numeric:
+            ax.plot(x, table[m], marker="o")
+        else:  # categories (hands, methods): bars, not a line between them
+            ax.bar(x, table[m], color="#4c72b0")
             ax.set_xticks(x, [str(v) for v in parsed], fontsize=7)
+        ax.set_title(_metric_label(m), fontsize=8)
     for ax in np.ravel(axes)[len(shown) :]:
         ax.axis("off")
     fig.suptitle(key, fontsize=10)
