@@ -399,7 +399,9 @@ def retarget_sequence(seq: Sequence, hand: RobotHand, params: RetargetParams) ->
     """Retarget one (scaled) sequence to ``hand``. See the module docstring for the method."""
     start = time.perf_counter()
     human_all = np.asarray(seq.keypoints, dtype=np.float64)
-    observed, lost = detect_bad_frames(seq.keypoints, seq.valid, params.jump_threshold_m)
+    observed, lost = detect_bad_frames(
+        seq.keypoints, seq.valid, params.jump_threshold_m, fps=seq.fps
+    )
     mano = np.asarray(hand.mano_indices)
     human = np.nan_to_num(human_all[:, mano])
     problem = _Problem(hand, params, seq.fps)
