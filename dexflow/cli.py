@@ -4,7 +4,8 @@ Subcommands:
   params [OVERRIDE ...] [--check]   compose conf/ into params.yaml (as `dvc exp run` does)
   validate PATH [--data-root DIR]   check sequence files against the canonical format
   demo OUT [--objects ...]          generate (part of) the demo dataset outside the pipeline
-  convert ADAPTER SRC DST           dexycb | ho3d | grab | generic -> canonical sequences
+  convert ADAPTER SRC [SRC ...] DST [--strict]
+                                    dexycb | ho3d | grab | generic -> canonical sequences
   hand check NAME|YAML [--png P]    validate a hand, print its kinematic tree, draw its zero pose
   hand export NAME|YAML OUT.urdf    write an MJCF hand as a URDF (for pybullet)
   bench fk|retarget|refine|simulate|pipeline
@@ -92,20 +93,28 @@ def _cmd_convert(args: argparse.Namespace) -> int:
         fps=args.fps,
         side=args.side,
         jump_threshold_m=args.jump_threshold_m,
+        strict=args.strict,
     )
     report = convert(args.adapter, args.src, args.dst, options)
     for name, entry in report["sequences"].items():
         if entry["status"] == "ok":
+            median = entry["fingertip_to_surface_mm_median"]
             print(
-                f"ok   {name}: {entry['frames']} frames, {entry['missing_frames']} without a hand, "
+                f"ok   {name}: {entry['frames']} frames, {entry['template_frames']} template "
+                f"frames, {entry['missing_frames']} without a hand, "
                 f"{entry['tracking_lost_frames']} tracking lost, fingertip-to-surface median "
-                f"{entry['fingertip_to_surface_mm_median']:.1f} mm"
+                + ("n/a" if median is None else f"{median:.1f} mm")
                 + (" (mirrored left hand)" if entry["mirrored"] else "")
             )
+        elif entry["status"] == "skipped":
+            print(f"skip {name}: {entry['reason']}")
         else:
             print(f"FAIL {name}: {entry['error']}")
-    print(f"{report['num_ok']}/{report['num_sequences']} sequences written to {args.dst}")
-    return 0 if report["num_ok"] == report["num_sequences"] and report["num_ok"] else 1
+    print(
+        f"{report['num_ok']}/{report['num_sequences']} sequences written to {args.dst}"
+        f" ({report['num_skipped']} skipped, {report['num_failed']} failed)"
+    )
+    return 0 if report["num_ok"] and not report["num_failed"] else 1
 
 
 def _cmd_hand_check(args: argparse.Namespace) -> int:
@@ -229,10 +238,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=int, default=1)
     p.set_defaults(func=_cmd_demo)
 
-    p = sub.add_parser("convert", help="convert a dataset to dexflow's format")
+    p = sub.add_parser(
+        "convert",
+        help="convert a dataset to dexflow's format",
+        description="Convert source folders of a dataset (or its root) into one data root. "
+        "Exit status 0 when at least one sequence was written and none failed; sequences "
+        "without an object model are skipped (listed), unless --strict.",
+    )
     p.add_argument("adapter", choices=["dexycb", "ho3d", "grab", "generic"])
-    p.add_argument("src")
-    p.add_argument("dst")
+    p.add_argument(
+        "src", nargs="+", help="source folder(s): e.g. subject folders or the dataset root"
+    )
+    p.add_argument("dst", help="output data root (sequences/, meshes/, convert.json)")
     p.add_argument("--models", help="object models folder (default SRC/models)")
     p.add_argument("--mano", help="your MANO model file or folder (only for MANO-only data)")
     p.add_argument("--camera", help="DexYCB camera serial (default: the first)")
@@ -240,6 +257,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--side", default="right", choices=["right", "left", "both"], help="GRAB hands")
     p.add_argument(
         "--jump-threshold-m", type=float, default=0.08, help="wrist jump = tracking lost"
+    )
+    p.add_argument(
+        "--strict", action="store_true", help="a missing object model is an error (exit 1)"
     )
     p.set_defaults(func=_cmd_convert)
 

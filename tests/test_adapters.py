@@ -130,7 +130,7 @@ def test_ho3d_reorders_joints_and_fills_missing_frames(tmp_path):
             pickle.dump(record, handle)
     _box(tmp_path / "src" / "models" / "025_mug" / "textured_simple.obj")
     assert convert("ho3d", tmp_path / "src", tmp_path / "out")["num_ok"] == 1
-    seq = load_sequence(tmp_path / "out" / "sequences" / "ho3d_MC1.npz")
+    seq = load_sequence(tmp_path / "out" / "sequences" / "ho3d_src_MC1.npz")
     assert seq.num_frames == T and list(np.flatnonzero(~seq.valid)) == [1, 3]
     np.testing.assert_allclose(seq.keypoints[seq.valid], hand[seq.valid], atol=1e-12)
     np.testing.assert_allclose(seq.obj_pose[[0, 2, 4]], poses[[0, 2, 4]], atol=1e-9)
@@ -228,6 +228,111 @@ def test_tracking_loss_frames_are_masked_on_conversion(tmp_path):
     assert list(np.flatnonzero(~seq.valid)) == [12, 13, 14]
 
 
+def _write_ho3d(seq_dir, hand, poses, template=(), obj="025_mug"):
+    """HO-3D-layout frames; ``template`` frames carry the MANO template hand, as DexYCB's do."""
+    meta = seq_dir / "meta"
+    meta.mkdir(parents=True)
+    far = _hand(1, offset=(0.5, -0.5, 0.3))[0]  # the template's joints: present, 0.8 m away
+    for t in range(len(hand)):
+        is_template = t in template
+        record = {
+            "handJoints3D": _ho3d_order(far if is_template else hand[t]),
+            "handPose": np.zeros(48) if is_template else np.full(48, 0.1),
+            "handTrans": np.zeros(3) if is_template else hand[t, 0],
+            "objRot": Rotation.from_matrix(poses[t, :3, :3]).as_rotvec(),
+            "objTrans": poses[t, :3, 3],
+            "objName": obj,
+            "side": "right",
+        }
+        with open(meta / f"{t:04d}.pkl", "wb") as handle:
+            pickle.dump(record, handle)
+
+
+def test_ho3d_template_frames_are_invalid_at_the_source_even_when_most_frames_are(tmp_path):
+    n = 20
+    hand, poses = _hand(n), _poses(n)
+    template = [*range(11), 18, 19]  # more than half: continuity alone would keep these
+    _write_ho3d(tmp_path / "src" / "20201002-subject-08" / "20201002_104719", hand, poses, template)
+    _box(tmp_path / "models" / "025_mug" / "textured_simple.obj")
+    options = ConvertOptions(models=str(tmp_path / "models"))
+    report = convert("ho3d", tmp_path / "src" / "20201002-subject-08", tmp_path / "out", options)
+    entry = report["sequences"]["20201002-subject-08_20201002_104719"]
+    assert entry["template_frames"] == 13 and entry["missing_frames"] == 0, entry
+    seq = load_sequence(
+        tmp_path / "out" / "sequences" / "ho3d_20201002-subject-08_20201002_104719.npz"
+    )
+    assert list(np.flatnonzero(seq.valid)) == list(range(11, 18))
+    assert np.isnan(seq.keypoints[template]).all()
+    np.testing.assert_allclose(seq.keypoints[seq.valid], hand[seq.valid], atol=1e-12)
+
+
+def test_dexycb_all_zero_mano_pose_marks_a_template_frame(tmp_path):
+    _make_dexycb(tmp_path / "src")
+    cam = tmp_path / "src" / "20200709-subject-01" / "20200709_141754" / "836212060125"
+    for t in range(T):
+        with np.load(cam / f"labels_{t:06d}.npz") as data:
+            fields = dict(data)
+        fields["pose_m"] = np.zeros((1, 51)) if t in (0, 1) else np.full((1, 51), 0.1)
+        np.savez(cam / f"labels_{t:06d}.npz", **fields)
+    report = convert("dexycb", tmp_path / "src", tmp_path / "out")
+    entry = report["sequences"]["20200709-subject-01_20200709_141754"]
+    assert (entry["template_frames"], entry["missing_frames"]) == (2, 1), entry
+    seq = load_sequence(next((tmp_path / "out" / "sequences").glob("*.npz")))
+    assert list(np.flatnonzero(~seq.valid)) == [0, 1, 2]
+
+
+def _two_subjects(root):
+    """Two subject folders of HO-3D-layout captures (one without its mesh) and the models."""
+    hand, poses = _hand(), _poses()
+    _write_ho3d(root / "captures" / "20201002-subject-08" / "20201002_104719", hand, poses)
+    _write_ho3d(root / "captures" / "20201015-subject-09" / "20201015_142724", hand, poses)
+    _write_ho3d(
+        root / "captures" / "20201015-subject-09" / "20201015_150000", hand, poses, obj="011_banana"
+    )
+    _box(root / "models" / "025_mug" / "textured_simple.obj")
+    return root / "captures", root / "models"
+
+
+def test_convert_gathers_several_sources_or_a_dataset_root_and_skips_missing_meshes(tmp_path):
+    captures, models = _two_subjects(tmp_path)
+    options = ConvertOptions(models=str(models))
+    subjects = sorted(captures.iterdir())
+    by_folders = convert("ho3d", subjects, tmp_path / "a", options)
+    by_root = convert("ho3d", captures, tmp_path / "b", options)
+    for report, out in ((by_folders, tmp_path / "a"), (by_root, tmp_path / "b")):
+        assert (report["num_ok"], report["num_skipped"], report["num_failed"]) == (2, 1, 0)
+        names = sorted(p.name for p in (out / "sequences").glob("*.npz"))
+        assert names == [
+            "ho3d_20201002-subject-08_20201002_104719.npz",
+            "ho3d_20201015-subject-09_20201015_142724.npz",
+        ]
+        skipped = report["sequences"]["20201015-subject-09_20201015_150000"]
+        assert skipped["status"] == "skipped" and "011_banana" in skipped["reason"]
+        assert json.loads((out / "convert.json").read_text())["num_skipped"] == 1
+    strict = convert(
+        "ho3d", captures, tmp_path / "c", ConvertOptions(models=str(models), strict=True)
+    )
+    assert (strict["num_ok"], strict["num_failed"]) == (2, 1)
+    twice = convert("ho3d", [subjects[0], subjects[0]], tmp_path / "d", options)
+    assert (twice["num_ok"], twice["num_failed"]) == (1, 1)  # a name never overwrites another
+
+
+def test_convert_command_exit_status(tmp_path, capsys):
+    from dexflow.cli import main
+
+    captures, models = _two_subjects(tmp_path)
+    subjects = [str(p) for p in sorted(captures.iterdir())]
+    common = ["--models", str(models)]
+    assert main(["convert", "ho3d", *subjects, str(tmp_path / "a"), *common]) == 0
+    out = capsys.readouterr().out
+    assert "skip 20201015-subject-09_20201015_150000: no object model of '011_banana'" in out
+    assert "2/3 sequences written" in out and "0 template frames" in out
+    assert main(["convert", "ho3d", *subjects, str(tmp_path / "b"), *common, "--strict"]) == 1
+    assert (
+        main(["convert", "ho3d", subjects[1], str(tmp_path / "c"), "--models", str(tmp_path)]) == 1
+    )
+
+
 def _fake_mano(path):
     rng = np.random.default_rng(0)
     n_verts = 778
@@ -303,7 +408,7 @@ def test_mano_joints_from_a_structurally_valid_fake_model(tmp_path):
         pickle.dump(model, handle)
     report = convert("ho3d", tmp_path / "src", tmp_path / "out", ConvertOptions(mano=str(tmp_path)))
     assert report["num_ok"] == 1, report
-    seq = load_sequence(tmp_path / "out" / "sequences" / "ho3d_SM1.npz")
+    seq = load_sequence(tmp_path / "out" / "sequences" / "ho3d_src_SM1.npz")
     expected = load_mano(tmp_path / "MANO_RIGHT.pkl").joints(
         np.zeros((3, 3)), np.zeros((3, 45)), transl=np.tile([0.0, 0.0, 0.1], (3, 1))
     )
@@ -367,7 +472,7 @@ def test_bad_layouts_name_the_missing_file_or_field(tmp_path, breakage, words):
     breakage(tmp_path / "src")
     try:
         report = convert("dexycb", tmp_path / "src", tmp_path / "out")
-        errors = " ".join(s.get("error", "") for s in report["sequences"].values())
+        errors = " ".join(s.get("error", s.get("reason", "")) for s in report["sequences"].values())
     except DatasetLayoutError as exc:
         errors = str(exc)
     assert words in errors

@@ -1,10 +1,17 @@
 """Dataset adapters: DexYCB, HO-3D, GRAB and a generic format -> dexflow's canonical sequences.
 
-``dexflow convert <adapter> SRC DST`` writes ``DST/sequences/*.npz`` and ``DST/meshes/``.
-Every adapter then cleans the same way (:func:`write_sequence`):
+``dexflow convert <adapter> SRC [SRC ...] DST`` writes ``DST/sequences/<adapter>_<name>.npz``
+and ``DST/meshes/``; names are unique within a dataset (DexYCB and HO-3D names carry the folder
+above the sequence, e.g. the subject: ``ho3d_20201002-subject-08_20201002_104719``). A sequence
+whose object model is missing is skipped and listed with the path it looked for. Every adapter
+then cleans the same way (:func:`write_sequence`):
 
 - frames without a hand (missing files, ``None`` or all ``-1`` joints, NaN) are kept as frames
   with NaN keypoints and ``valid = False`` (masked, not dropped, so time stays uniform);
+- frames whose annotation is the dataset's "not annotated" marker are masked the same way and
+  counted apart (``template_frames``): DexYCB and HO-3D leave such frames at the MANO template
+  hand (all-zero ``handPose`` and ``handTrans``, or DexYCB's all-zero ``pose_m``), whose joints
+  are present but ~0.8 m from the real hand;
 - frames whose annotation is a default pose far from the rest of the sequence (an implausible
   wrist jump, :func:`dexflow.human.cleaning.detect_bad_frames`) are masked the same way;
 - frames without an object pose hold the nearest annotated pose;
@@ -17,13 +24,15 @@ Layouts (only the files dexflow reads are listed):
 
 - **DexYCB**: ``<subject>/<sequence>/meta.yml`` (``serials``, ``ycb_ids``, ``ycb_grasp_ind``,
   ``mano_sides``, ``extrinsics``), ``<sequence>/<serial>/labels_%06d.npz`` (``joint_3d
-  (1, 21, 3)`` in that camera's frame, ``pose_y (n_obj, 3, 4)``),
+  (1, 21, 3)`` in that camera's frame, ``pose_y (n_obj, 3, 4)``, optional ``pose_m (1, 51)``),
   ``calibration/extrinsics_<name>/extrinsics.yml`` (``extrinsics: {serial: 12 numbers}``, camera
   to world, row-major 3x4), models ``models/<ycb name>/textured_simple.obj``. 30 fps.
-- **HO-3D**: ``<sequence>/meta/<frame>.pkl`` dicts with ``handJoints3D (21, 3)`` (HO-3D order),
-  ``objRot (3,)`` axis-angle, ``objTrans (3,)``, ``objName`` (e.g. ``025_mug``); optional
-  ``side``; optional MANO ``handPose (48,)``, ``handTrans (3,)``, ``handBeta (10,)`` used with
-  ``--mano`` where the joints are missing. Models ``<models>/<objName>/textured_simple.obj``.
+- **HO-3D** (also DexYCB exported in its layout): ``<sequence>/meta/<frame>.pkl`` below SRC,
+  or ``<subject>/<sequence>/meta/<frame>.pkl`` below a dataset root, dicts with
+  ``handJoints3D (21, 3)`` (HO-3D order), ``objRot (3,)`` axis-angle, ``objTrans (3,)``,
+  ``objName`` (e.g. ``025_mug``); optional ``side``; optional MANO ``handPose (48,)``,
+  ``handTrans (3,)``, ``handBeta (10,)`` used with ``--mano`` where the joints are missing.
+  Models ``<models>/<objName>/textured_simple.obj``.
 - **GRAB**: ``*.npz`` (pickled dicts, as GRAB ships them): ``framerate``, ``object`` with
   ``params: {transl (T, 3), global_orient (T, 3)}`` and ``object_mesh`` (path relative to SRC),
   ``rhand`` / ``lhand`` with ``joints (T, 21, 3)`` (MANO order) or, with ``--mano``,
@@ -42,6 +51,7 @@ import json
 import logging
 import pickle
 from collections.abc import Callable, Iterator
+from collections.abc import Sequence as Sequence_
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -88,7 +98,9 @@ class ConvertOptions:
         camera: DexYCB camera serial (default: the first in ``meta.yml``).
         fps: Frame rate where the data does not say (HO-3D, generic CSV without it).
         side: GRAB hand(s) to convert: right, left or both.
-        jump_threshold_m: Wrist jump (from the running median) that marks tracking loss.
+        jump_threshold_m: Wrist step between tracked frames that marks tracking loss
+            (:func:`dexflow.human.cleaning.detect_bad_frames`).
+        strict: A missing object model fails its sequence instead of skipping it.
     """
 
     models: str | None = None
@@ -97,6 +109,7 @@ class ConvertOptions:
     fps: float | None = None
     side: str = "right"
     jump_threshold_m: float = 0.08
+    strict: bool = False
 
 
 @dataclass
@@ -104,7 +117,8 @@ class RawSequence:
     """What an adapter reads, before cleaning (world frame of the source, metres).
 
     ``keypoints (T, 21, 3)`` in dexflow's order with NaN where there is no hand;
-    ``obj_pose (T, 4, 4)`` with NaN where the object is not annotated.
+    ``obj_pose (T, 4, 4)`` with NaN where the object is not annotated; ``template (T,)`` True
+    where the source marks the hand as not annotated (keypoints NaN there too), None if none.
     """
 
     name: str
@@ -115,6 +129,7 @@ class RawSequence:
     fps: float
     side: str
     source: str
+    template: np.ndarray | None = None
 
 
 def _need(path: Path, what: str) -> Path:
@@ -132,8 +147,10 @@ def _field(data, key: str, where: Path | str):
 
 def _pose(rot, trans) -> np.ndarray:
     out = np.eye(4)
-    out[:3, :3] = np.asarray(rot, dtype=np.float64).reshape(3, 3) if np.size(rot) == 9 else (
-        Rotation.from_rotvec(np.asarray(rot, dtype=np.float64).reshape(3)).as_matrix()
+    out[:3, :3] = (
+        np.asarray(rot, dtype=np.float64).reshape(3, 3)
+        if np.size(rot) == 9
+        else (Rotation.from_rotvec(np.asarray(rot, dtype=np.float64).reshape(3)).as_matrix())
     )
     out[:3, 3] = np.asarray(trans, dtype=np.float64).reshape(3)
     return out
@@ -141,8 +158,10 @@ def _pose(rot, trans) -> np.ndarray:
 
 def _mano_for(options: ConvertOptions, side: str) -> ManoModel:
     if not options.mano:
-        raise DatasetLayoutError("joints are missing and only MANO parameters exist: pass "
-                                 "--mano <your MANO_RIGHT.pkl / MANO_LEFT.pkl or their folder>")
+        raise DatasetLayoutError(
+            "joints are missing and only MANO parameters exist: pass "
+            "--mano <your MANO_RIGHT.pkl / MANO_LEFT.pkl or their folder>"
+        )
     path = Path(options.mano)
     if path.is_dir():
         path = path / f"MANO_{side.upper()}.pkl"
@@ -172,38 +191,73 @@ def _dexycb(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
         ycb_ids = _field(meta, "ycb_ids", meta_path)
         grasp = int(_field(meta, "ycb_grasp_ind", meta_path))
         side = str(_field(meta, "mano_sides", meta_path)[0])
-        calib = src / "calibration" / f"extrinsics_{_field(meta, 'extrinsics', meta_path)}" / "extrinsics.yml"
+        calib = (
+            src
+            / "calibration"
+            / f"extrinsics_{_field(meta, 'extrinsics', meta_path)}"
+            / "extrinsics.yml"
+        )
         extr = _field(_read_yaml(calib), "extrinsics", calib)
         cam_to_world = np.eye(4)
         cam_to_world[:3] = np.asarray(_field(extr, serial, calib), dtype=np.float64).reshape(3, 4)
-        labels = sorted(_need(seq_dir / serial, f"camera folder of serial {serial}").glob("labels_*.npz"))
+        labels = sorted(
+            _need(seq_dir / serial, f"camera folder of serial {serial}").glob("labels_*.npz")
+        )
         if not labels:
             raise DatasetLayoutError(f"{seq_dir / serial}: no labels_*.npz files")
         frames = [int(p.stem.split("_")[1]) for p in labels]
         n_frames = max(frames) + 1
         kp = np.full((n_frames, 21, 3), np.nan)
         pose = np.full((n_frames, 4, 4), np.nan)
+        template = np.zeros(n_frames, dtype=bool)
         for frame, path in zip(frames, labels, strict=True):
             with np.load(path) as data:
                 joints = np.asarray(_field(data, "joint_3d", path), dtype=np.float64).reshape(21, 3)
                 objects = np.asarray(_field(data, "pose_y", path), dtype=np.float64)
-            if not np.all(joints == -1):
+                mano = np.asarray(data["pose_m"]) if "pose_m" in data.files else None
+            if np.all(joints == -1):
+                pass  # DexYCB's "no hand in this frame"
+            elif mano is not None and not mano.any():
+                template[frame] = True
+            else:
                 kp[frame] = joints @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
             if len(objects) > grasp and np.isfinite(objects[grasp]).all() and objects[grasp].any():
                 pose[frame] = cam_to_world @ np.vstack([objects[grasp], [0, 0, 0, 1]])
         name = YCB_CLASSES[int(ycb_ids[grasp]) - 1]
         mesh = models / name / "textured_simple.obj"
-        yield RawSequence(f"{seq_dir.parent.name}_{seq_dir.name}", kp, pose, mesh, name,
-                          options.fps or 30.0, side, "dexycb")
+        yield RawSequence(
+            f"{seq_dir.parent.name}_{seq_dir.name}",
+            kp,
+            pose,
+            mesh,
+            name,
+            options.fps or 30.0,
+            side,
+            "dexycb",
+            template,
+        )
 
 
 # -------------------------------------------------------------------------------------- HO-3D
 
 
+def _is_mano_template(meta: dict) -> bool:
+    """Whether an HO-3D frame carries the MANO template (all-zero pose and translation)."""
+    hand_pose, hand_trans = meta.get("handPose"), meta.get("handTrans")
+    return (
+        hand_pose is not None
+        and hand_trans is not None
+        and not np.any(hand_pose)
+        and not np.any(hand_trans)
+    )
+
+
 def _ho3d(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
-    seq_dirs = sorted(p.parent for p in src.glob("*/meta"))
+    seq_dirs = sorted(p.parent for p in [*src.glob("*/meta"), *src.glob("*/*/meta")] if p.is_dir())
     if not seq_dirs:
-        raise DatasetLayoutError(f"{src}: no <sequence>/meta/ folders (HO-3D layout)")
+        raise DatasetLayoutError(
+            f"{src}: no <sequence>/meta/ or <subject>/<sequence>/meta/ folders (HO-3D layout)"
+        )
     models = Path(options.models) if options.models else src / "models"
     for seq_dir in seq_dirs:
         files = sorted((seq_dir / "meta").glob("*.pkl"))
@@ -213,6 +267,7 @@ def _ho3d(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
         first, n_frames = min(frames), max(frames) - min(frames) + 1
         kp = np.full((n_frames, 21, 3), np.nan)
         pose = np.full((n_frames, 4, 4), np.nan)
+        template = np.zeros(n_frames, dtype=bool)
         names, side, mano_frames = set(), "right", {}
         for frame, path in zip(frames, files, strict=True):
             with open(path, "rb") as handle:
@@ -220,7 +275,9 @@ def _ho3d(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
             t = frame - first
             side = str(meta.get("side", side))
             joints = meta.get("handJoints3D")
-            if joints is not None and np.size(joints) == 63:
+            if _is_mano_template(meta):
+                template[t] = True  # joints present, but of the template hand far away
+            elif joints is not None and np.size(joints) == 63:
                 kp[t] = np.asarray(joints, dtype=np.float64).reshape(21, 3)[list(HO3D_TO_DEXFLOW)]
             elif meta.get("handPose") is not None:
                 mano_frames[t] = meta
@@ -232,15 +289,28 @@ def _ho3d(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
         if mano_frames:
             model = _mano_for(options, side)
             ts = sorted(mano_frames)
-            hand_pose = np.stack([np.asarray(mano_frames[t]["handPose"], dtype=np.float64) for t in ts])
+            hand_pose = np.stack(
+                [np.asarray(mano_frames[t]["handPose"], dtype=np.float64) for t in ts]
+            )
             betas = np.asarray(mano_frames[ts[0]].get("handBeta", np.zeros(10)), dtype=np.float64)
             trans = np.stack([np.asarray(mano_frames[t].get("handTrans", np.zeros(3))) for t in ts])
             kp[ts] = model.joints(hand_pose[:, :3], hand_pose[:, 3:], betas, trans)
         if len(names) != 1:
-            raise DatasetLayoutError(f"{seq_dir}: expected one 'objName' in the frames, found {sorted(names)}")
+            raise DatasetLayoutError(
+                f"{seq_dir}: expected one 'objName' in the frames, found {sorted(names)}"
+            )
         name = names.pop()
-        yield RawSequence(seq_dir.name, kp, pose, models / name / "textured_simple.obj", name,
-                          options.fps or 30.0, side, "ho3d")
+        yield RawSequence(
+            f"{seq_dir.parent.name}_{seq_dir.name}",
+            kp,
+            pose,
+            models / name / "textured_simple.obj",
+            name,
+            options.fps or 30.0,
+            side,
+            "ho3d",
+            template,
+        )
 
 
 # --------------------------------------------------------------------------------------- GRAB
@@ -253,13 +323,17 @@ def _grab(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
     sides = ("right", "left") if options.side == "both" else (options.side,)
     for path in files:
         with np.load(path, allow_pickle=True) as data:
-            raw = {k: data[k].item() if data[k].dtype == object and data[k].shape == () else data[k]
-                   for k in data.files}
+            raw = {
+                k: data[k].item() if data[k].dtype == object and data[k].shape == () else data[k]
+                for k in data.files
+            }
         fps = float(_field(raw, "framerate", path))
         obj = _field(raw, "object", path)
         params = _field(obj, "params", f"{path}: object")
         transl = np.asarray(_field(params, "transl", f"{path}: object.params"), dtype=np.float64)
-        orient = np.asarray(_field(params, "global_orient", f"{path}: object.params"), dtype=np.float64)
+        orient = np.asarray(
+            _field(params, "global_orient", f"{path}: object.params"), dtype=np.float64
+        )
         pose = np.repeat(np.eye(4)[None], len(transl), axis=0)
         pose[:, :3, :3] = Rotation.from_rotvec(orient).as_matrix()
         pose[:, :3, 3] = transl
@@ -271,8 +345,12 @@ def _grab(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
             else:
                 hp = _field(hand, "params", f"{path}: {side} hand")
                 model = _mano_for(options, side)
-                kp = model.joints(_field(hp, "global_orient", path), _field(hp, "hand_pose", path),
-                                  hand.get("betas"), _field(hp, "transl", path))
+                kp = model.joints(
+                    _field(hp, "global_orient", path),
+                    _field(hp, "hand_pose", path),
+                    hand.get("betas"),
+                    _field(hp, "transl", path),
+                )
             name = f"{path.parent.name}_{path.stem}" + ("" if len(sides) == 1 else f"_{side}")
             yield RawSequence(name, kp, pose, mesh, mesh.stem, fps, side, "grab")
 
@@ -290,15 +368,22 @@ def _generic(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
                 fields = {k: data[k] for k in data.files}
             kp = np.asarray(_field(fields, "keypoints", path), dtype=np.float64)
         else:
-            fields = json.loads(_need(path.with_suffix(".json"), "sidecar .json (obj_mesh, fps)").read_text())
+            fields = json.loads(
+                _need(path.with_suffix(".json"), "sidecar .json (obj_mesh, fps)").read_text()
+            )
             import pandas as pd
 
             table = pd.read_csv(path)
             cols = [f"kp{i}_{c}" for i in range(21) for c in "xyz"]
-            missing = [c for c in [*cols, "obj_rx", "obj_ry", "obj_rz", "obj_tx", "obj_ty", "obj_tz"]
-                       if c not in table]
+            missing = [
+                c
+                for c in [*cols, "obj_rx", "obj_ry", "obj_rz", "obj_tx", "obj_ty", "obj_tz"]
+                if c not in table
+            ]
             if missing:
-                raise DatasetLayoutError(f"{path}: missing columns {missing[:6]}{'...' if len(missing) > 6 else ''}")
+                raise DatasetLayoutError(
+                    f"{path}: missing columns {missing[:6]}{'...' if len(missing) > 6 else ''}"
+                )
             kp = table[cols].to_numpy(dtype=np.float64).reshape(-1, 21, 3)
             fields["obj_rotvec"] = table[["obj_rx", "obj_ry", "obj_rz"]].to_numpy(dtype=np.float64)
             fields["obj_trans"] = table[["obj_tx", "obj_ty", "obj_tz"]].to_numpy(dtype=np.float64)
@@ -328,8 +413,16 @@ def _generic(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
         if fps <= 0:
             raise DatasetLayoutError(f"{path}: no 'fps' in the file and no --fps given")
         mesh = src / str(_field(fields, "obj_mesh", path))
-        yield RawSequence(path.stem, kp * scale, pose, mesh, mesh.stem, fps,
-                          str(fields.get("side", "right")), "generic")
+        yield RawSequence(
+            path.stem,
+            kp * scale,
+            pose,
+            mesh,
+            mesh.stem,
+            fps,
+            str(fields.get("side", "right")),
+            "generic",
+        )
 
 
 ADAPTERS: dict[str, Callable[[Path, ConvertOptions], Iterator[RawSequence]]] = {
@@ -367,9 +460,11 @@ def fingertip_surface_distance(seq: Sequence, mesh, frames: int = 40) -> np.ndar
 def write_sequence(raw: RawSequence, dst: Path, options: ConvertOptions) -> dict:
     """Clean, mirror (left hands), validate and save one sequence; return its report."""
     kp = np.array(raw.keypoints, dtype=np.float64)
-    missing = ~np.isfinite(kp).all(axis=(1, 2))
+    template = np.zeros(len(kp), dtype=bool) if raw.template is None else np.asarray(raw.template)
+    kp[template] = np.nan
+    missing = ~np.isfinite(kp).all(axis=(1, 2)) & ~template
     kp[missing] = np.nan
-    observed, lost = detect_bad_frames(kp, None, options.jump_threshold_m)
+    observed, lost = detect_bad_frames(kp, None, options.jump_threshold_m, fps=raw.fps)
     kp[lost] = np.nan
     valid = observed.copy()
     if not valid.any():
@@ -378,9 +473,16 @@ def write_sequence(raw: RawSequence, dst: Path, options: ConvertOptions) -> dict
     mesh_rel = f"meshes/{raw.obj_name}.obj"
     if not (dst / mesh_rel).exists():
         write_obj(dst / mesh_rel, mesh)
-    seq = Sequence(keypoints=kp, obj_pose=_hold_nearest(raw.obj_pose), obj_mesh=mesh_rel,
-                   obj_name=raw.obj_name, fps=raw.fps, side=raw.side, source=raw.source,
-                   valid=valid)
+    seq = Sequence(
+        keypoints=kp,
+        obj_pose=_hold_nearest(raw.obj_pose),
+        obj_mesh=mesh_rel,
+        obj_name=raw.obj_name,
+        fps=raw.fps,
+        side=raw.side,
+        source=raw.source,
+        valid=valid,
+    )
     if raw.side == "left":
         mesh = mirror_mesh(mesh)
         mirrored_rel = f"meshes/{raw.obj_name}_mirrored.obj"
@@ -393,43 +495,91 @@ def write_sequence(raw: RawSequence, dst: Path, options: ConvertOptions) -> dict
     save_sequence(path, seq, data_root=dst)
     gap = fingertip_surface_distance(seq, mesh)
     report = {
-        "frames": int(len(kp)),
+        "frames": len(kp),
         "missing_frames": int(missing.sum()),
+        "template_frames": int(template.sum()),
         "tracking_lost_frames": int(lost.sum()),
         "mirrored": raw.side == "left",
         "fingertip_to_surface_mm_median": float(np.median(gap) * 1000) if len(gap) else None,
         "fingertip_to_surface_mm_p90": float(np.percentile(gap, 90) * 1000) if len(gap) else None,
     }
     if len(gap) and np.median(gap) > 0.03:
-        log.warning("%s: nearest fingertip is %.0f mm from the object surface (median): is the "
-                    "object pose in the same frame as the keypoints?", raw.name, np.median(gap) * 1000)
+        log.warning(
+            "%s: nearest fingertip is %.0f mm from the object surface (median): is the "
+            "object pose in the same frame as the keypoints?",
+            raw.name,
+            np.median(gap) * 1000,
+        )
     return report
 
 
-def convert(adapter: str, src: str | Path, dst: str | Path, options: ConvertOptions | None = None) -> dict:
-    """Convert a dataset; one bad sequence is reported and the others are written.
+def convert(
+    adapter: str,
+    src: str | Path | Sequence_[str | Path],
+    dst: str | Path,
+    options: ConvertOptions | None = None,
+) -> dict:
+    """Convert one or several source folders of a dataset into one data root.
+
+    One bad sequence is reported and the others are written. A sequence whose object model is
+    missing is ``skipped`` (``failed`` with ``options.strict``); two sources that give the same
+    sequence name fail the second one rather than overwrite the first.
+
+    Args:
+        adapter: One of :data:`ADAPTERS`.
+        src: Source folder(s): what the adapter's layout expects (see the module docstring).
+        dst: The data root to write (``sequences/``, ``meshes/``, ``convert.json``).
+        options: Adapter options (defaults: :class:`ConvertOptions`).
 
     Returns:
-        The report, also written to ``DST/convert.json``.
+        The report, also written to ``DST/convert.json``: per sequence its ``status`` (ok,
+        skipped, failed) with its counts or its ``reason``/``error``, and the totals.
+
+    Raises:
+        DatasetLayoutError: Unknown adapter, a missing source folder, or a source that does not
+            have the adapter's layout at all.
     """
     if adapter not in ADAPTERS:
         raise DatasetLayoutError(f"unknown adapter '{adapter}'; known: {sorted(ADAPTERS)}")
     options = options or ConvertOptions()
-    src, dst = Path(src), Path(dst)
-    _need(src, "source dataset folder")
+    sources = [Path(src)] if isinstance(src, (str, Path)) else [Path(s) for s in src]
+    if not sources:
+        raise DatasetLayoutError("no source folder given")
+    dst = Path(dst)
+    for folder in sources:
+        _need(folder, "source dataset folder")
     (dst / "sequences").mkdir(parents=True, exist_ok=True)
     sequences: dict[str, dict] = {}
-    for raw in ADAPTERS[adapter](src, options):
-        try:
-            sequences[raw.name] = {"status": "ok", **write_sequence(raw, dst, options)}
-        except (DexflowError, SequenceFormatError) as exc:
-            sequences[raw.name] = {"status": "failed", "error": str(exc)}
-            log.error("%s: %s", raw.name, exc)
+    for folder in sources:
+        for raw in ADAPTERS[adapter](folder, options):
+            if raw.name in sequences:
+                sequences[f"{raw.name} ({folder})"] = {
+                    "status": "failed",
+                    "error": f"{raw.name}: the same name comes from an earlier source; "
+                    f"convert {folder} into another root",
+                }
+                log.error("%s: duplicate sequence name from %s", raw.name, folder)
+                continue
+            if not raw.mesh_path.is_file():
+                reason = f"no object model of '{raw.obj_name}': {raw.mesh_path} is missing"
+                status = "failed" if options.strict else "skipped"
+                key = "error" if options.strict else "reason"
+                sequences[raw.name] = {"status": status, key: reason}
+                (log.error if options.strict else log.warning)("%s: %s", raw.name, reason)
+                continue
+            try:
+                sequences[raw.name] = {"status": "ok", **write_sequence(raw, dst, options)}
+            except (DexflowError, SequenceFormatError) as exc:
+                sequences[raw.name] = {"status": "failed", "error": str(exc)}
+                log.error("%s: %s", raw.name, exc)
+    statuses = [entry["status"] for entry in sequences.values()]
     report = {
         "adapter": adapter,
-        "source": str(src),
+        "source": [str(folder) for folder in sources],
         "num_sequences": len(sequences),
-        "num_ok": sum(s["status"] == "ok" for s in sequences.values()),
+        "num_ok": statuses.count("ok"),
+        "num_skipped": statuses.count("skipped"),
+        "num_failed": statuses.count("failed"),
         "sequences": sequences,
     }
     save_json(dst / "convert.json", report)
