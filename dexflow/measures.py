@@ -1,10 +1,61 @@
-"""Trajectory measures shared by stages and reports: smoothness and speed-distribution distance."""
+"""Measures shared by stages and reports: hand-object penetration, smoothness, speed histograms.
+
+Each measure has one definition here; stage modules (simulate, metrics, ...) import it from this
+leaf module and never from each other.
+"""
 
 from __future__ import annotations
 
-import numpy as np
+from typing import TYPE_CHECKING
 
-__all__ = ["fingertip_speeds", "rms_acceleration", "velocity_kl"]
+import numpy as np
+import torch
+
+if TYPE_CHECKING:
+    from dexflow.hands.robot import RobotHand
+    from dexflow.objects.sdf import SignedDistanceGrid
+
+__all__ = [
+    "fingertip_speeds",
+    "penetration_depth",
+    "rms_acceleration",
+    "surface_distances",
+    "velocity_kl",
+]
+
+
+def _world_to_object(points: np.ndarray, obj_pose: np.ndarray) -> np.ndarray:
+    inv = np.linalg.inv(np.asarray(obj_pose))
+    return np.einsum("tij,tnj->tni", inv[:, :3, :3], points) + inv[:, None, :3, 3]
+
+
+def surface_distances(
+    hand: RobotHand, q: np.ndarray, obj_pose: np.ndarray, sdf: SignedDistanceGrid
+) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distances of the hand's surface points to the object mesh, batched over frames.
+
+    The points are :meth:`RobotHand.surface`: samples on the hand's collision geometry (every
+    link not in the hand config's ``surface_exclude``). The distance is the object's mesh signed
+    distance grid (winding-number sign, :mod:`dexflow.objects.sdf`), not its convex parts.
+
+    Args:
+        hand: The robot hand.
+        q: (T, dof) configurations.
+        obj_pose: (T, 4, 4) object poses (object mesh -> world).
+        sdf: The object's signed distance grid, in object coordinates.
+
+    Returns:
+        Distances (T, N) in metres (negative inside the object) and world points (T, N, 3).
+    """
+    with torch.no_grad():
+        points, _ = hand.surface(torch.as_tensor(q, dtype=hand.dtype))
+    points = points.cpu().numpy()
+    return sdf.query(_world_to_object(points, obj_pose)), points
+
+
+def penetration_depth(distances: np.ndarray) -> np.ndarray:
+    """Per frame the depth (m, >= 0) of the deepest point: ``max(0, -min_n d)``; (T, N) -> (T,)."""
+    return np.clip(-distances.min(axis=1), 0.0, None)
 
 
 def rms_acceleration(q: np.ndarray, fps: float) -> float:

@@ -18,7 +18,9 @@ Definitions (per sequence; the aggregate is the mean over sequences unless said 
 - ``rms_acc``: root-mean-square joint acceleration (rad/s²) of the hand joints, central second
   differences at the sequence's fps (:func:`dexflow.measures.rms_acceleration`).
 - ``pd_mm`` (penetration depth): per frame the depth of the deepest hand surface point inside
-  the object (signed distance grid; 0 if none), averaged over frames.
+  the object (signed distance grid; 0 if none), averaged over frames
+  (:func:`dexflow.measures.penetration_depth`, the same definition stage simulate's
+  penetration rule uses).
 - ``cd_mm`` (contact distance): per frame and finger in contact (stage contact's final
   states), the finger's smallest distance to the object surface clipped at 0, averaged over the
   fingers in contact, then over frames with any contact.
@@ -51,7 +53,13 @@ import torch
 from scipy.spatial import ConvexHull
 
 from dexflow.hands.robot import RobotHand
-from dexflow.measures import fingertip_speeds, rms_acceleration, velocity_kl
+from dexflow.measures import (
+    fingertip_speeds,
+    penetration_depth,
+    rms_acceleration,
+    surface_distances,
+    velocity_kl,
+)
 from dexflow.objects.sdf import SignedDistanceGrid
 
 __all__ = [
@@ -60,7 +68,6 @@ __all__ = [
     "SelfCollision",
     "chamfer_per_frame",
     "contact_distance",
-    "penetration_depth",
     "run_metrics",
     "state_flicker",
 ]
@@ -82,27 +89,6 @@ class MetricsParams:
 
 
 # ------------------------------------------------------------------------ hand-object measures
-
-
-def _world_to_object(points: np.ndarray, obj_pose: np.ndarray) -> np.ndarray:
-    inv = np.linalg.inv(np.asarray(obj_pose))
-    return np.einsum("tij,tnj->tni", inv[:, :3, :3], points) + inv[:, None, :3, 3]
-
-
-def surface_distances(
-    hand: RobotHand, q: np.ndarray, obj_pose: np.ndarray, sdf: SignedDistanceGrid
-) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distances (T, N) of the hand's surface points to the object (negative inside),
-    and the world points (T, N, 3). Batched over frames."""
-    with torch.no_grad():
-        points, _ = hand.surface(torch.as_tensor(q, dtype=hand.dtype))
-    points = points.numpy()
-    return sdf.query(_world_to_object(points, obj_pose)), points
-
-
-def penetration_depth(distances: np.ndarray) -> np.ndarray:
-    """Per frame the depth (m, >= 0) of the deepest point: ``max(0, -min_n d)``; (T, N) -> (T,)."""
-    return np.clip(-distances.min(axis=1), 0.0, None)
 
 
 def contact_distance(per_finger: np.ndarray, contact: np.ndarray) -> np.ndarray:

@@ -2,14 +2,21 @@
 
 pybullet, headless (DIRECT). The hand is loaded from its URDF (MJCF hands are exported to URDF
 by :func:`dexflow.hands.export.export_urdf`), its floating base held at the frame's pose by a
-fixed constraint and its joints under position control. The object is a compound of the convex
-parts that stage scale_align decomposed it into, with ``object_mass_kg`` (uniform density: centre
-of mass and inertia from the parts) and ``friction`` (also given to every hand link).
+fixed constraint and its joints under position control. Links of the URDF without
+``<inertial>`` (pybullet would make them 1 kg) are given ``massless_link_mass_kg`` and
+``massless_link_inertia_kgm2`` in a copy of the URDF (:func:`hand_urdf`). The object is a
+compound of the convex parts that stage scale_align decomposed it into, with ``object_mass_kg``
+(uniform density: centre of mass and inertia from the parts) and ``friction`` (also given to
+every hand link).
 
 Protocol for one frame ``t`` (the paper's, after DexGraspNet):
 
 1. Hand at ``q_t``, object at its pose ``T_t``, everything at rest. The **starting penetration**
-   is the deepest overlap between a hand link and the object's convex parts (0 if none).
+   is the depth of the deepest point of the hand's collision geometry inside the object's mesh
+   (:func:`dexflow.measures.penetration_depth` on the signed distance grid of stage
+   scale_align: the same definition as metrics' PD). The convex parts the physics uses bulge
+   beyond a scanned mesh by millimetres, so their overlap with the hand (``parts_penetration_m``,
+   reported as a diagnostic) would reject flush grasps on a scan.
 2. Every link closer to the object than ``contact_margin_m`` is **pushed** along the contact
    normal into the object by its gap plus ``push_m``: the joint change comes from one damped
    least-squares step on the stacked Jacobian of the links' contact points (fingers only; tied
@@ -30,7 +37,7 @@ Criteria, per frame, both reported:
 - ``bench`` (DexGraspBench): displacement < ``max_displacement_m`` and rotation
   < ``max_rotation_deg`` in all six tests.
 
-A frame counts as a success only when its starting penetration is at most
+A frame counts as a success only when its starting penetration (on the mesh) is at most
 ``penetration_tol_m``: a link wedged inside the object "holds" it without a real grasp. The
 uncounted result is kept too (``*_raw``) so that reports can show what the tolerance removes. A
 sequence succeeds (per criterion) if any evaluated frame at or after its first contact (stage
@@ -44,6 +51,7 @@ frame's result does not depend on the frames tested before it.
 from __future__ import annotations
 
 import atexit
+import logging
 import shutil
 import tempfile
 import time
@@ -57,6 +65,8 @@ from scipy.spatial.transform import Rotation
 
 from dexflow.errors import HandConfigError
 from dexflow.hands.robot import RobotHand, base_transform
+from dexflow.measures import penetration_depth, surface_distances
+from dexflow.objects.sdf import SignedDistanceGrid
 
 __all__ = [
     "DIRECTIONS",
@@ -74,6 +84,8 @@ _TOUCH_M = 1e-3  # "in contact" at the end of a test: closer than this
 _DLS_DAMPING = 1e-2  # damping (m/rad) of the push step's least squares
 _DROP_CHECK_EVERY = 10  # control steps between checks for a dropped object
 _FK_CHECK_TOL_M = 1e-4  # pybullet's link frames must match the kinematic model's
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -101,6 +113,8 @@ class SimulateParams:
     stride: int = 5
     early_stop: bool = True
     max_frames: int = 0
+    massless_link_mass_kg: float = 0.002
+    massless_link_inertia_kgm2: float = 1e-7
 
 
 def object_parts(path: str | Path) -> list[np.ndarray]:
@@ -168,7 +182,9 @@ class GraspWorld:
         c.resetSimulation()
         c.setGravity(0, 0, 0)
         c.setTimeStep(p.control_dt_s / p.substeps)
-        self.body = c.loadURDF(self.urdf, flags=self.pb.URDF_MAINTAIN_LINK_ORDER)
+        # the URDF's inertia tensors (pybullet's default recomputes them from collision shapes)
+        flags = self.pb.URDF_MAINTAIN_LINK_ORDER | self.pb.URDF_USE_INERTIA_FROM_FILE
+        self.body = c.loadURDF(self.urdf, flags=flags)
         joints = {}
         self.link_index = {c.getBodyInfo(self.body)[0].decode(): -1}
         for i in range(c.getNumJoints(self.body)):
@@ -290,7 +306,8 @@ class GraspWorld:
         """Position-control targets with every touching link pushed into the object.
 
         Returns:
-            Target ``q`` (dof,), the starting penetration depth (m, >= 0), links pushed.
+            Target ``q`` (dof,), the deepest overlap (m, >= 0) between a hand link and the
+            object's convex parts, links pushed.
         """
         p, hand = self.params, self.hand
         points = self._closest(p.contact_margin_m)
@@ -334,8 +351,10 @@ class GraspWorld:
             pose: (4, 4) object pose in the world.
 
         Returns:
-            ``penetration_m``, ``pushed_links``, ``held (6,)``, ``displacement_m (6,)``,
-            ``rotation_deg (6,)``, ``tested (6,)`` and the two criteria ``contact``, ``bench``.
+            ``parts_penetration_m`` (deepest overlap with the convex parts, a diagnostic; the
+            penetration rule is :func:`simulate_sequence`'s, on the mesh), ``pushed_links``,
+            ``held (6,)``, ``displacement_m (6,)``, ``rotation_deg (6,)``, ``tested (6,)`` and
+            the two criteria ``contact``, ``bench`` (before the penetration rule).
         """
         if self.object is None:
             raise RuntimeError("GraspWorld.test_frame: set_object first")
@@ -357,12 +376,7 @@ class GraspWorld:
             self._build()
             self._set_hand(q)
             start = self._set_object(pose)
-            c.setJointMotorControlArray(
-                self.body, self.joint_ids, self.pb.POSITION_CONTROL,
-                targetPositions=target[6:].tolist(), forces=[p.motor_force] * len(self.joint_ids),
-                positionGains=[p.position_gain] * len(self.joint_ids),
-                velocityGains=[p.velocity_gain] * len(self.joint_ids),
-            )  # fmt: skip
+            self._control(target)
             self._settle(start)
             force = (p.object_mass_kg * p.gravity * direction).tolist()
             for step in range(p.control_steps):
@@ -380,7 +394,7 @@ class GraspWorld:
             rotation[k] = float(np.degrees(relative.magnitude()))
             held[k] = bool(self._closest(_TOUCH_M))
         return {
-            "penetration_m": penetration,
+            "parts_penetration_m": penetration,
             "pushed_links": pushed,
             "held": held,
             "displacement_m": displacement,
@@ -389,6 +403,48 @@ class GraspWorld:
             "contact": bool(tested.all() and held.all()),
             "bench": bool(tested.all() and _bench(displacement, rotation, p).all()),
         }
+
+    def _control(self, target: np.ndarray) -> None:
+        """Put every hand joint under position control towards ``target (dof,)``."""
+        p, n = self.params, len(self.joint_ids)
+        self.client.setJointMotorControlArray(
+            self.body, self.joint_ids, self.pb.POSITION_CONTROL,
+            targetPositions=target[6:].tolist(), forces=[p.motor_force] * n,
+            positionGains=[p.position_gain] * n, velocityGains=[p.velocity_gain] * n,
+        )  # fmt: skip
+
+    def hold(self, q: np.ndarray) -> np.ndarray:
+        """Hold the hand at ``q`` with no object, under the protocol's controller.
+
+        The check that the controller is stable for this hand: for each of the six directions
+        in turn, from rest at ``q``, ``settle_steps + control_steps`` control steps (a frame's
+        whole horizon) with the hand's own weight (``gravity`` along the direction) acting on
+        it, stricter than the test itself, where the hand carries no weight.
+
+        Args:
+            q: (dof,) configuration, also the target.
+
+        Returns:
+            (6, S, J) hand joint angles after every control step of every direction.
+        """
+        p, c = self.params, self.client
+        q = np.asarray(q, dtype=float)
+        steps = p.settle_steps + p.control_steps
+        out = np.empty((len(DIRECTIONS), steps, len(self.joint_ids)))
+        for k, direction in enumerate(DIRECTIONS):
+            self._build()
+            if self.object is not None:
+                c.removeBody(self.object)
+                self.object = None
+            self._set_hand(q)
+            self._control(q)
+            c.setGravity(*(p.gravity * direction))
+            for step in range(steps):
+                for _ in range(p.substeps):
+                    c.stepSimulation()
+                out[k, step] = [s[0] for s in c.getJointStates(self.body, self.joint_ids)]
+        self._build()
+        return out
 
     def _settle(self, start: np.ndarray) -> None:
         """Close the fingers onto the object while it is held at its start pose."""
@@ -417,26 +473,54 @@ def _bench(displacement: np.ndarray, rotation: np.ndarray, p: SimulateParams) ->
     return (displacement < p.max_displacement_m) & (rotation < p.max_rotation_deg)
 
 
-def hand_urdf(hand: RobotHand) -> Path:
-    """The URDF pybullet loads for ``hand``: the model itself, or an export of an MJCF hand
-    (written once per process to a temporary directory)."""
-    from dexflow.hands.export import export_urdf
+def hand_urdf(hand: RobotHand, params: SimulateParams | None = None) -> Path:
+    """The URDF pybullet loads for ``hand`` (written once per process to a temporary directory
+    when it differs from the model file).
 
-    if hand.model.format == "urdf":
-        return Path(hand.model.path)
-    key = str(hand.model.path) + hand.model.root
+    A URDF hand whose links all carry ``<inertial>`` is loaded as it is. Otherwise a copy gives
+    the links without it ``params.massless_link_mass_kg`` and a diagonal inertia of
+    ``params.massless_link_inertia_kgm2`` (pybullet would make each 1 kg), with mesh paths made
+    absolute. An MJCF hand is exported (:func:`dexflow.hands.export.export_urdf`: MuJoCo's body
+    masses and inertias; the frames the export adds weigh 10 mg).
+
+    Args:
+        hand: The hand.
+        params: The protocol's parameters (defaults if None).
+    """
+    from dexflow.hands.export import export_urdf, links_without_inertial, with_default_inertials
+
+    p = SimulateParams() if params is None else params
+    source = Path(hand.model.path)
+    if hand.model.format == "urdf" and not links_without_inertial(source):
+        return source
+    key = (str(source), hand.model.root, p.massless_link_mass_kg, p.massless_link_inertia_kgm2)
     if key not in _URDF_CACHE:
         folder = Path(tempfile.mkdtemp(prefix="dexflow-urdf-"))
         atexit.register(shutil.rmtree, folder, ignore_errors=True)
-        _URDF_CACHE[key] = export_urdf(hand.model, folder / f"{hand.spec.name}.urdf")
+        out = folder / f"{hand.spec.name}.urdf"
+        if hand.model.format == "urdf":
+            filled = with_default_inertials(
+                source, out, p.massless_link_mass_kg, p.massless_link_inertia_kgm2
+            )
+            logger.info(
+                "hand '%s': links without <inertial> given %g kg: %s",
+                hand.spec.name, p.massless_link_mass_kg, ", ".join(filled),
+            )  # fmt: skip
+        else:
+            export_urdf(hand.model, out)
+        _URDF_CACHE[key] = out
     return _URDF_CACHE[key]
 
 
-_URDF_CACHE: dict[str, Path] = {}
+_URDF_CACHE: dict[tuple, Path] = {}
 
 
 def simulate_sequence(
-    world: GraspWorld, q: np.ndarray, poses: np.ndarray, first_contact: int
+    world: GraspWorld,
+    q: np.ndarray,
+    poses: np.ndarray,
+    first_contact: int,
+    sdf: SignedDistanceGrid,
 ) -> tuple[dict[str, np.ndarray], dict]:
     """Evaluate the frames of one trajectory from its first contact on.
 
@@ -445,20 +529,28 @@ def simulate_sequence(
         q: (T, dof) hand trajectory.
         poses: (T, 4, 4) object poses.
         first_contact: First frame with a finger in contact (-1: none, nothing is evaluated).
+        sdf: The object mesh's signed distance grid (stage scale_align's ``sdf.npz``): the
+            starting penetration of the penetration rule is measured on it.
 
     Returns:
-        Per evaluated frame arrays (``frame``, ``penetration_m``, ``held``, ...) and the
-        sequence's result.
+        Per evaluated frame arrays (``frame``, ``penetration_m`` on the mesh,
+        ``parts_penetration_m`` on the convex parts, ``held``, ...) and the sequence's result.
     """
     p = world.params
     frames = [] if first_contact < 0 else list(range(first_contact, len(q), p.stride))
     if p.max_frames > 0:
         frames = frames[: p.max_frames]
+    q, poses = np.asarray(q, dtype=float), np.asarray(poses, dtype=float)
+    depth = np.zeros(len(q))
+    if frames:
+        distances, _ = surface_distances(world.hand, q[frames], poses[frames], sdf)
+        depth[frames] = penetration_depth(distances)
     rows = []
     found = {"contact": None, "bench": None, "contact_raw": None, "bench_raw": None}
     for t in frames:
         row = world.test_frame(q[t], poses[t])
         row["frame"] = t
+        row["penetration_m"] = float(depth[t])
         rows.append(row)
         within = row["penetration_m"] <= p.penetration_tol_m
         for key in ("contact", "bench"):
@@ -468,14 +560,14 @@ def simulate_sequence(
                 found[key] = t
         if p.early_stop and found["contact"] is not None and found["bench"] is not None:
             break
-    keys = ("frame", "penetration_m", "pushed_links", "held", "displacement_m", "rotation_deg",
-            "tested", "contact", "bench")  # fmt: skip
+    keys = ("frame", "penetration_m", "parts_penetration_m", "pushed_links", "held",
+            "displacement_m", "rotation_deg", "tested", "contact", "bench")  # fmt: skip
     arrays = {
         k: np.array([r[k] for r in rows]) if rows else np.zeros((0, 6) if k in
            ("held", "displacement_m", "rotation_deg", "tested") else 0)
         for k in keys
     }  # fmt: skip
-    pen = arrays["penetration_m"]
+    pen, parts = arrays["penetration_m"], arrays["parts_penetration_m"]
     result = {
         "frames": len(q),
         "first_contact": int(first_contact),
@@ -487,6 +579,8 @@ def simulate_sequence(
         "success_frame": -1 if found["contact"] is None else int(found["contact"]),
         "penetration_mean_mm": float(pen.mean() * 1000) if len(pen) else 0.0,
         "over_tolerance": float((pen > p.penetration_tol_m).mean()) if len(pen) else 0.0,
+        "parts_penetration_mean_mm": float(parts.mean() * 1000) if len(parts) else 0.0,
+        "parts_over_tolerance": float((parts > p.penetration_tol_m).mean()) if len(parts) else 0.0,
     }
     return arrays, result
 
@@ -534,9 +628,11 @@ def run_simulate(params, method: str, traj_root, contact_root, aligned_root, out
             any_contact = data["final"].any(axis=1)
         first = int(np.argmax(any_contact)) if any_contact.any() else -1
         world = _world(hand, sp)
-        world.set_object((aligned_root / seq.obj_mesh).parent / "convex.obj")
+        object_dir = (aligned_root / seq.obj_mesh).parent
+        world.set_object(object_dir / "convex.obj")
+        sdf = SignedDistanceGrid.load(object_dir / "sdf.npz")
         start = time.perf_counter()
-        arrays, result = simulate_sequence(world, q, seq.obj_pose, first)
+        arrays, result = simulate_sequence(world, q, seq.obj_pose, first, sdf)
         result["seconds"] = time.perf_counter() - start
         save_npz(out_root / "sequences" / path.name, arrays)
         return result
@@ -564,6 +660,10 @@ def run_simulate(params, method: str, traj_root, contact_root, aligned_root, out
         "penetration_mean_mm": float(np.mean([s["penetration_mean_mm"] for s in ok]))
         if ok else float("nan"),
         "over_tolerance": float(np.mean([s["over_tolerance"] for s in ok])) if ok else 0.0,
+        "parts_penetration_mean_mm": float(np.mean([s["parts_penetration_mean_mm"] for s in ok]))
+        if ok else float("nan"),
+        "parts_over_tolerance": float(np.mean([s["parts_over_tolerance"] for s in ok]))
+        if ok else 0.0,
         "sequences": dict(sorted(sequences.items())),
     }  # fmt: skip
     stage.finish(summary)
@@ -578,5 +678,5 @@ def _world(hand: RobotHand, params: SimulateParams) -> GraspWorld:
     key = id(hand)
     world = _WORLDS.get(key)
     if world is None or world.params != params:
-        world = _WORLDS[key] = GraspWorld(hand, hand_urdf(hand), params)
+        world = _WORLDS[key] = GraspWorld(hand, hand_urdf(hand, params), params)
     return world

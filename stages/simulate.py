@@ -15,7 +15,8 @@ from dexflow.io.atomic import save_json
 from dexflow.simulate import run_simulate
 
 KEYS = ("num_sequences", "num_ok", "num_failed", "frames_evaluated", "ssr", "ssr_bench", "ssr_raw",
-        "ssr_bench_raw", "penetration_mean_mm", "over_tolerance")  # fmt: skip
+        "ssr_bench_raw", "penetration_mean_mm", "over_tolerance", "parts_penetration_mean_mm",
+        "parts_over_tolerance")  # fmt: skip
 
 
 def main(argv: list[str]) -> int:

@@ -11,14 +11,13 @@ import torch
 import trimesh
 
 from dexflow.hands import load_hand
+from dexflow.measures import penetration_depth, surface_distances
 from dexflow.metrics import (
     MetricsParams,
     SelfCollision,
     chamfer_per_frame,
     contact_distance,
-    penetration_depth,
     state_flicker,
-    surface_distances,
     trajectory_metrics,
 )
 from dexflow.objects.sdf import SignedDistanceGrid

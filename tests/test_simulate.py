@@ -1,8 +1,11 @@
-"""Stage simulate: the six-direction grasp test in pybullet on a three-finger gripper and a box."""
+"""Stage simulate: the six-direction grasp test in pybullet on a three-finger gripper and a box;
+default inertial data for URDF links without it, a stable controller at tiny inertias, and the
+penetration rule measured on the object's mesh."""
 
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -10,6 +13,7 @@ import trimesh
 
 from dexflow.hands import load_hand
 from dexflow.objects.convex import write_convex_obj
+from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.simulate import (
     GraspWorld,
     SimulateParams,
@@ -35,6 +39,11 @@ def scene(tmp_path_factory):
     pose = np.eye(4)
     pose[2, 3] = 0.01 + BOX[2] / 2  # palm top at z = 1 cm
     return hand, world, pose, folder
+
+
+@pytest.fixture(scope="module")
+def box_sdf():
+    return SignedDistanceGrid.from_mesh(trimesh.creation.box(BOX), spacing=0.001, padding=0.01)
 
 
 def _closed(hand, world, pose) -> np.ndarray:
@@ -64,7 +73,7 @@ def test_wrapped_hand_holds_the_box_in_all_six_directions(scene):
     assert result["tested"].all() and result["held"].all()
     assert result["contact"] and result["bench"]
     assert result["pushed_links"] >= 3  # three fingers (and the palm) touch the box
-    assert result["penetration_m"] < 1e-3
+    assert result["parts_penetration_m"] < 1e-3
     assert np.all(result["displacement_m"] < 0.01) and np.all(result["rotation_deg"] < 15)
 
 
@@ -81,7 +90,7 @@ def test_object_away_from_the_hand_falls(scene):
     away = pose.copy()
     away[0, 3] += 0.2
     result = world.test_frame(_closed(hand, world, pose), away)
-    assert result["pushed_links"] == 0 and result["penetration_m"] == 0.0
+    assert result["pushed_links"] == 0 and result["parts_penetration_m"] == 0.0
     assert not result["contact"] and not result["bench"] and not result["held"].any()
 
 
@@ -108,7 +117,7 @@ def test_results_are_identical_across_runs_and_worlds(scene):
             np.testing.assert_array_equal(np.asarray(value), np.asarray(result[key]), err_msg=key)
 
 
-def test_penetrating_start_does_not_count_and_sequence_logic(scene):
+def test_penetrating_start_does_not_count_and_sequence_logic(scene, box_sdf):
     """A frame that starts with the box sunk into the palm holds it but is not counted; the
     sequence succeeds at the first clean frame after first contact and stops there."""
     hand, world, pose, folder = scene
@@ -117,18 +126,20 @@ def test_penetrating_start_does_not_count_and_sequence_logic(scene):
     sunk[2, 3] -= 0.004  # 4 mm into the palm
     q = np.stack([_opened(hand), closed, closed, closed, closed])
     poses = np.stack([pose, pose, sunk, pose, pose])
-    arrays, result = simulate_sequence(world, q, poses, first_contact=2)
+    arrays, result = simulate_sequence(world, q, poses, first_contact=2, sdf=box_sdf)
     p = world.params
     assert arrays["frame"].tolist() == [2]  # stride 5 from frame 2
     params = dataclasses.replace(p, stride=1)
     world_1 = GraspWorld(hand, hand_urdf(hand), params)
     world_1.set_object(folder / "box.obj")
-    arrays, result = simulate_sequence(world_1, q, poses, first_contact=2)
+    arrays, result = simulate_sequence(world_1, q, poses, first_contact=2, sdf=box_sdf)
     assert arrays["frame"].tolist() == [2, 3]  # early stop after the first counted success
     assert arrays["penetration_m"][0] > p.penetration_tol_m and arrays["contact"][0]
+    assert arrays["penetration_m"][0] == pytest.approx(0.004, abs=5e-4)  # on the mesh
+    assert arrays["parts_penetration_m"][0] == pytest.approx(0.004, abs=5e-4)  # parts = mesh
     assert result["success_contact_raw"] and result["success_contact"]
     assert result["success_frame"] == 3 and result["evaluated"] == 2
-    _, none = simulate_sequence(world_1, q, poses, first_contact=-1)
+    _, none = simulate_sequence(world_1, q, poses, first_contact=-1, sdf=box_sdf)
     assert none["evaluated"] == 0 and not none["success_contact"]
 
 
@@ -146,3 +157,78 @@ def test_convex_parts_round_trip_and_mass_frame_of_the_union(tmp_path):
     # volumes 8e-6 and 64e-6 m³: the centre of mass is 8/9 of the way to the big cube
     np.testing.assert_allclose(frame[:3, 3], (0.1 * 64 / 72, 0.0, 0.0), atol=1e-9)
     assert np.all(moments > 0)
+
+
+def test_links_without_inertial_get_the_default_mass(tmp_path):
+    """The base and the fingertip frames lose their <inertial>; pybullet would make each 1 kg.
+    The URDF pybullet loads gives them the documented default, and a mesh referenced by a
+    relative path still loads from the copy."""
+    yaml = _gripper(tmp_path)
+    urdf = tmp_path / "gripper3.urdf"
+    text = re.sub(
+        r'(<link name="(base|f\d_tip)">)<inertial>.*?</inertial>', r"\1", urdf.read_text()
+    )
+    pad = '<collision><geometry><mesh filename="meshes/pad.obj"/></geometry></collision>'
+    text = text.replace('<link name="f0_tip">', f'<link name="f0_tip">{pad}')
+    urdf.write_text(text)
+    (tmp_path / "meshes").mkdir()
+    trimesh.creation.box((0.01, 0.01, 0.004)).export(tmp_path / "meshes" / "pad.obj")
+    hand = load_hand(yaml)
+    params = SimulateParams(massless_link_mass_kg=0.003, massless_link_inertia_kgm2=2e-7)
+    path = hand_urdf(hand, params)
+    assert path != urdf and path.parent != urdf.parent
+    world, raw = GraspWorld(hand, path, params), GraspWorld(hand, urdf, params)
+    for link in ("base", "f0_tip", "f1_tip", "f2_tip"):
+        info = world.client.getDynamicsInfo(world.body, world.link_index[link])
+        assert info[0] == pytest.approx(0.003)
+        np.testing.assert_allclose(info[2], (2e-7,) * 3)
+        assert raw.client.getDynamicsInfo(raw.body, raw.link_index[link])[0] == 1.0
+    own = world.client.getDynamicsInfo(world.body, world.link_index["f0_prox"])
+    assert own[0] == pytest.approx(0.02)  # links with inertial data keep theirs
+    shapes = world.client.getCollisionShapeData(world.body, world.link_index["f0_tip"])
+    assert [s[2] for s in shapes] == [world.pb.GEOM_MESH]
+    (tmp_path / "complete").mkdir()
+    complete = load_hand(_gripper(tmp_path / "complete"))
+    assert hand_urdf(complete) == tmp_path / "complete" / "gripper3.urdf"  # loaded as it is
+
+
+@pytest.mark.parametrize("name", ["tiny", "allegro"])
+def test_hand_with_tiny_inertias_holds_its_pose_without_an_object(tmp_path, name):
+    """Every link at 1e-6 kg·m² (the gripper) or the built-in Allegro (1 g links of 1e-7):
+    under the protocol's controller, with nothing to touch and the hand's own weight along each
+    of the six directions, no joint leaves its target by 0.05 rad over a frame's horizon."""
+    if name == "tiny":
+        yaml = _gripper(tmp_path)
+        urdf = tmp_path / "gripper3.urdf"
+        text = re.sub(r'i(xx|yy|zz)="[^"]*"', r'i\1="1e-6"', urdf.read_text())
+        urdf.write_text(text)
+        hand = load_hand(yaml)
+    else:
+        hand = load_hand("allegro")
+    params = SimulateParams()
+    world = GraspWorld(hand, hand_urdf(hand, params), params)
+    rng = np.random.default_rng(0)
+    lo, hi = hand.lower.numpy()[6:], hand.upper.numpy()[6:]
+    q = hand.zero()[0].numpy().copy()
+    q[:6] = [0.1, -0.2, 0.3, 0.4, -0.5, 0.6]
+    q[6:] = lo + (0.2 + 0.6 * rng.random(len(lo))) * (hi - lo)
+    q = hand.clamp(hand.apply_couplings(hand.as_q(q)))[0].numpy()
+    angles = world.hold(q)
+    assert angles.shape == (6, params.settle_steps + params.control_steps, hand.dof - 6)
+    assert np.abs(angles - q[6:]).max() < 0.05
+
+
+def test_penetration_rule_uses_the_mesh_not_the_bulging_convex_parts(scene, box_sdf, tmp_path):
+    """A flush grasp on the box, simulated with convex parts 3 mm larger than the mesh (as a
+    decomposition bulges beyond a scan): the parts overlap the hand by 3 mm, the mesh by none,
+    and the frame is counted."""
+    hand, world, pose, _ = scene
+    q = _closed(hand, world, pose)
+    write_convex_obj(tmp_path / "bulging.obj", [trimesh.creation.box(np.array(BOX) + 0.006)])
+    bulging = GraspWorld(hand, hand_urdf(hand), SimulateParams())
+    bulging.set_object(tmp_path / "bulging.obj")
+    arrays, result = simulate_sequence(bulging, q[None], pose[None], 0, box_sdf)
+    assert arrays["parts_penetration_m"][0] > 0.0025
+    assert arrays["penetration_m"][0] < 1e-3
+    assert result["over_tolerance"] == 0.0 and result["parts_over_tolerance"] == 1.0
+    assert result["success_contact"] == result["success_contact_raw"]

@@ -16,10 +16,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dexflow.errors import HandConfigError
-from dexflow.hands.model import KinematicModel
+from dexflow.hands.model import KinematicModel, _urdf_mesh_path
 from dexflow.io.atomic import atomic_path
 
-__all__ = ["ROOT_LINK", "export_urdf"]
+__all__ = ["ROOT_LINK", "export_urdf", "links_without_inertial", "with_default_inertials"]
 
 ROOT_LINK = "hand_root"
 _DEFAULT_EFFORT = 10.0
@@ -170,3 +170,55 @@ def export_urdf(model: KinematicModel, out_path: str | Path) -> Path:
     with atomic_path(out_path) as tmp:
         tmp.write_text(header + text + "\n")
     return out_path
+
+
+def links_without_inertial(urdf_path: str | Path) -> list[str]:
+    """Names of the links of a URDF that have no ``<inertial>`` (pybullet gives them 1 kg)."""
+    root = ET.parse(urdf_path).getroot()
+    return [link.get("name") for link in root.iter("link") if link.find("inertial") is None]
+
+
+def with_default_inertials(
+    urdf_path: str | Path, out_path: str | Path, mass_kg: float, inertia_kgm2: float
+) -> list[str]:
+    """Copy a URDF, giving every link without ``<inertial>`` a small mass and inertia.
+
+    Physics engines read a link without ``<inertial>`` as something else than massless (pybullet:
+    1 kg at the link origin). The copy gives such links ``mass_kg`` at their origin and the
+    diagonal inertia ``inertia_kgm2`` (kg·m²) about each axis; everything else is unchanged,
+    except that mesh file names become absolute paths, so the copy loads from any directory.
+
+    Args:
+        urdf_path: The hand's URDF.
+        out_path: Where the copy goes.
+        mass_kg: Mass given to links without inertial data (> 0).
+        inertia_kgm2: Their principal moments of inertia (> 0).
+
+    Returns:
+        The names of the links that were given the default.
+    """
+    if not mass_kg > 0 or not inertia_kgm2 > 0:
+        raise HandConfigError(
+            f"default link inertial data must be positive: mass {mass_kg!r} kg, inertia "
+            f"{inertia_kgm2!r} kg·m²"
+        )
+    urdf_path = Path(urdf_path)
+    tree = ET.parse(urdf_path)
+    filled = []
+    for link in tree.getroot().iter("link"):
+        if link.find("inertial") is None:
+            _inertial(link, mass_kg, diag=(inertia_kgm2,) * 3)
+            filled.append(link.get("name"))
+    for mesh in tree.getroot().iter("mesh"):
+        if mesh.get("filename"):
+            path = _urdf_mesh_path(mesh.get("filename"), urdf_path.parent)
+            mesh.set("filename", str(Path(path).resolve()))
+    ET.indent(tree)
+    text = ET.tostring(tree.getroot(), encoding="unicode")
+    header = (
+        f'<?xml version="1.0"?>\n<!-- {urdf_path.name}, with default inertial data for links '
+        f"without it ({mass_kg:g} kg, {inertia_kgm2:g} kg m^2), written by dexflow. -->\n"
+    )
+    with atomic_path(Path(out_path)) as tmp:
+        tmp.write_text(header + text + "\n", encoding="utf-8")
+    return filled
