@@ -149,7 +149,8 @@ def _metrics_dir(root, methods=("baseline", "retarget", "refine")):
     (metrics / "metrics.json").write_text(json.dumps(aggregates))
     for i, m in enumerate(methods):
         sim = {"ssr": 10.0 * i, "ssr_raw": 40.0 + i, "ssr_bench": 0.0, "ssr_bench_raw": 5.0,
-               "frames_evaluated": 100 + i, "penetration_mean_mm": 2.5, "over_tolerance": 0.25}  # fmt: skip
+               "frames_evaluated": 100 + i, "penetration_mean_mm": 2.5, "over_tolerance": 0.25,
+               "parts_penetration_mean_mm": 4.5, "parts_over_tolerance": 0.75}  # fmt: skip
         (metrics / f"simulate_{m}.json").write_text(json.dumps(sim))
     with open(root / "sequences.csv", "w", newline="") as f:
         writer = csv.writer(f)
@@ -180,14 +181,34 @@ def test_summary_tables_simulation_and_figures(tmp_path):
     assert "| DexFlow + refinement | 20.00 |" in grasp and "| *paper: DexFlow* | 40.32 |" in grasp
     sim = _section(text, "Simulation").splitlines()
     refine = next(r for r in sim if r.startswith("| DexFlow + refinement"))
-    assert refine.split("|")[1:9] == [" DexFlow + refinement ", " 10.00 ", " 41.00 ", " 0.00 ",
-                                      " 5.00 ", " 101 ", " 2.50 ", " 25 "]  # fmt: skip
-    assert next(r for r in sim if r.startswith("| DexFlow retargeting")).count("—") == 7
+    assert refine.split("|")[1:11] == [" DexFlow + refinement ", " 10.00 ", " 41.00 ", " 0.00 ",
+                                       " 5.00 ", " 101 ", " 2.50 ", " 25 ", " 4.50 ", " 75 "]  # fmt: skip
+    assert next(r for r in sim if r.startswith("| DexFlow retargeting")).count("—") == 9
     objects = _section(text, "Per object")
     assert objects.index("003_cracker_box") < objects.index("025_mug")
     for name in ("summary_methods.png", "summary_objects_pd.png", "summary_timeline.png"):
         assert f"(figures/{name})" in text
         assert (tmp_path / "figures" / name).stat().st_size > 5000
+
+
+@pytest.mark.parametrize(
+    ("data_name", "ground_truth", "demo"),
+    [("demo", True, True), ("dexycb", False, False), (None, True, True), (None, False, False)],
+)
+def test_summary_text_says_which_data_it_is(tmp_path, data_name, ground_truth, demo):
+    metrics, table, plots = _metrics_dir(tmp_path, methods=("baseline", "refine"))
+    overall = json.loads((metrics / "metrics.json").read_text())
+    overall = {k: v for k, v in overall.items() if not k.startswith("contact.precision")}
+    if ground_truth:  # only the generated demo has contact ground truth
+        overall["contact.precision"] = 0.9
+    (metrics / "metrics.json").write_text(json.dumps(overall))
+    text = write_summary(
+        metrics, table, plots, tmp_path / "summary.md", tmp_path / "figures", data_name=data_name
+    ).read_text()
+    assert ("grasps are synthetic" in text) == demo
+    assert f"Data: **{data_name or ('demo' if demo else 'your sequences')}**" in text
+    if data_name == "dexycb":
+        assert "This run's data is `dexycb`" in text
 
 
 def _exp(name, value, ssr=None, error=None, source="dvc"):
