@@ -25,6 +25,7 @@ from dexflow.retarget import RetargetParams
 from dexflow.simulate import SimulateParams
 
 __all__ = [
+    "DATA_GENERATORS",
     "ConvexParams",
     "DataParams",
     "HandParams",
@@ -36,6 +37,9 @@ __all__ = [
     "project_root",
 ]
 
+# Stages of dvc.yaml that can write ``data.root`` (``data.generated_by`` names some of them).
+DATA_GENERATORS = ("demo",)
+
 
 def _require(condition: bool, key: str, expected: str, found: Any) -> None:
     if not condition:
@@ -44,13 +48,24 @@ def _require(condition: bool, key: str, expected: str, found: Any) -> None:
 
 @dataclass
 class DataParams:
-    """Input sequences (``data``): a directory in the canonical format, or the generated demo."""
+    """Input sequences (``data``): a directory in the canonical format, or the generated demo.
+
+    Attributes:
+        name: The data's name (``demo`` for the generated demo; reports say which data they are).
+        root: Directory holding ``sequences/*.npz`` and the meshes they reference.
+        generated_by: The pipeline stages that write ``root``: ``[demo]`` for the demo, ``[]``
+            for your own data (``dvc.yaml``'s ``demo`` stage is a ``foreach`` over this list, so
+            plain ``dvc repro`` on your data has no demo stage to run).
+    """
 
     name: str = "demo"
     root: str = "data/demo"
+    generated_by: list[str] = field(default_factory=lambda: ["demo"])
 
     def __post_init__(self) -> None:
         _require(bool(self.root), "data.root", "a directory", self.root)
+        unknown = sorted(set(self.generated_by) - set(DATA_GENERATORS))
+        _require(not unknown, "data.generated_by", f"stages among {list(DATA_GENERATORS)}", unknown)
 
 
 def _validate_demo(d: DemoConfig) -> None:

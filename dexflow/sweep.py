@@ -236,6 +236,20 @@ def load_stages(dvc_yaml: str | Path, params: Mapping[str, Any]) -> list[Stage]:
     for name, body in (spec.get("stages") or {}).items():
         if "foreach" in body:
             items = body["foreach"]
+            if isinstance(items, str):  # ``foreach: ${dotted.param}``: the list or dict itself
+                whole = _INTERPOLATION.fullmatch(items.strip())
+                if whole is None:
+                    raise ConfigError(
+                        f"dvc.yaml stage '{name}': foreach {items!r} is not a list, a dict or "
+                        "one ${param}"
+                    )
+                try:
+                    items = _lookup(params, whole.group(1).strip())
+                except KeyError:
+                    raise ConfigError(
+                        f"dvc.yaml stage '{name}': cannot interpolate {items}: no such key in "
+                        "params.yaml"
+                    ) from None
             pairs = items.items() if isinstance(items, dict) else ((i, i) for i in items)
             for key, item in pairs:
                 context = {**params, "item": item, "key": key}

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -75,3 +78,21 @@ def test_missing_params_file_says_how_to_make_it(tmp_path):
 def test_dvc_config_enables_hydra_and_disables_analytics():
     text = (ROOT / ".dvc" / "config").read_text()
     assert "enabled = true" in text and "analytics = false" in text and "hardlink" in text
+
+
+@pytest.mark.parametrize(("overrides", "demo"), [([], True), (["data=custom"], False)])
+def test_dvc_has_a_demo_stage_only_where_the_data_is_the_demo(tmp_path, overrides, demo):
+    compose_params(overrides, tmp_path / "params.yaml", config_dir=ROOT / "conf")
+    shutil.copy(ROOT / "dvc.yaml", tmp_path / "dvc.yaml")
+    env = {**os.environ, "DVC_NO_ANALYTICS": "1"}
+    subprocess.run(["dvc", "init", "--no-scm", "-q"], cwd=tmp_path, check=True, env=env)
+    listed = subprocess.run(
+        ["dvc", "stage", "list", "--name-only"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
+    assert ("demo@demo" in listed) == demo == any(s.startswith("demo") for s in listed), listed
+    assert {"scale_align", "retarget@dexflow", "refine", "report"} <= set(listed)

@@ -60,7 +60,7 @@ def project(tmp_path_factory) -> Path:
 
 def test_repro_then_noop_then_only_the_changed_stage(project):
     out = _run(["dvc", "repro"], project)
-    assert "Running stage 'demo'" in out and "Running stage 'scale_align'" in out
+    assert "Running stage 'demo@demo'" in out and "Running stage 'scale_align'" in out
     summary = json.loads((project / "data/scale_align/summary.json").read_text())
     assert summary["num_ok"] == summary["num_sequences"] == 2
     assert json.loads((project / "reports/metrics/demo.json").read_text())["sequences"] == 2
@@ -78,7 +78,15 @@ def test_repro_then_noop_then_only_the_changed_stage(project):
     )
     changed = _run(["dvc", "repro"], project)
     assert "Running stage 'scale_align'" in changed
-    assert "Running stage 'demo'" not in changed
+    assert "Running stage 'demo" not in changed
+
+    # Your own data (here: the demo's files as if they were yours): no demo stage to run.
+    _run(
+        [sys.executable, "-m", "dexflow.cli", "params", "data=custom", "data.root=data/demo"],
+        project,
+    )
+    custom = _run(["dvc", "repro"], project)
+    assert "Running stage 'demo" not in custom and "Running stage 'report'" in custom
 
 
 def test_dvc_exp_run_composes_hydra_overrides(project):

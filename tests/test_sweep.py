@@ -20,7 +20,7 @@ from dexflow.report import collect_multirun
 from dexflow.sweep import load_stages, main, run_job, upstream_stages
 
 ROOT = Path(__file__).resolve().parents[1]
-UPSTREAM_OF_CONTACT = ["demo", "scale_align", "retarget@dexflow", "retarget@position"]
+UPSTREAM_OF_CONTACT = ["demo@demo", "scale_align", "retarget@dexflow", "retarget@position"]
 
 
 def _env(project: Path | None = None) -> dict[str, str]:
@@ -73,8 +73,8 @@ def test_load_stages_expands_foreach_and_interpolates_params():
 def test_upstream_stages_follow_the_outputs_each_stage_depends_on():
     stages = load_stages(ROOT / "dvc.yaml", load_yaml(ROOT / "params.yaml"))
     upstream = upstream_stages(stages)
-    assert upstream["demo"] == []
-    assert upstream["scale_align"] == ["demo"]  # through ${data.root} = data/demo
+    assert upstream["demo@demo"] == []
+    assert upstream["scale_align"] == ["demo@demo"]  # through ${data.root} = data/demo
     assert sorted(upstream["contact"]) == ["retarget@dexflow", "scale_align"]
     assert "retarget@position" in upstream["simulate@baseline"]
     assert "retarget@position" not in upstream["simulate@refine"]
@@ -343,7 +343,7 @@ def test_failed_jobs_are_recorded_while_the_others_complete(project):
 
     job, status = by_params[5, "data/missing"]
     assert status["status"] == "failed" and status["stage"] == "scale_align"
-    assert status["error"] and status["reused"] == ["demo"] and status["ran"] == []
+    assert status["error"] and status["reused"] == ["demo@demo"] and status["ran"] == []
 
     job, status = by_params[5, "data/demo"]
     assert status == {"status": "ok", "stage": None, "error": None, "ran": [],
