@@ -302,12 +302,12 @@ class GraspWorld:
 
     # ---------------------------------------------------------------------------- protocol
 
-    def push_targets(self, q: np.ndarray) -> tuple[np.ndarray, float, int]:
+    def push_targets(self, q: np.ndarray) -> tuple[np.ndarray, float, list[str]]:
         """Position-control targets with every touching link pushed into the object.
 
         Returns:
             Target ``q`` (dof,), the deepest overlap (m, >= 0) between a hand link and the
-            object's convex parts, links pushed.
+            object's convex parts, the names of the links within ``contact_margin_m``.
         """
         p, hand = self.params, self.hand
         points = self._closest(p.contact_margin_m)
@@ -318,7 +318,7 @@ class GraspWorld:
                 per_link[pt[3]] = pt
         links = [self.link_names[i] for i in sorted(per_link)]
         if not links:
-            return q.copy(), penetration, 0
+            return q.copy(), penetration, []
         # Jacobian of the contact points by forward differences over the free hand joints
         coupled = set(hand._coupled.tolist())
         free = [j for j in range(6, hand.dof) if j not in coupled]
@@ -341,7 +341,7 @@ class GraspWorld:
         out[free] += dq
         out = hand.clamp(hand.apply_couplings(hand.as_q(out)))[0].numpy()
         out[:6] = q[:6]
-        return out, penetration, len(links)
+        return out, penetration, links
 
     def test_frame(self, q: np.ndarray, pose: np.ndarray) -> dict:
         """Run the six-direction test for one frame.
@@ -352,9 +352,11 @@ class GraspWorld:
 
         Returns:
             ``parts_penetration_m`` (deepest overlap with the convex parts, a diagnostic; the
-            penetration rule is :func:`simulate_sequence`'s, on the mesh), ``pushed_links``,
-            ``held (6,)``, ``displacement_m (6,)``, ``rotation_deg (6,)``, ``tested (6,)`` and
-            the two criteria ``contact``, ``bench`` (before the penetration rule).
+            penetration rule is :func:`simulate_sequence`'s, on the mesh), ``pushed_links``
+            (how many links touch the object and are pushed), ``touching (F,)`` (which of the
+            hand's fingers, in the hand config's order, have such a link), ``held (6,)``,
+            ``displacement_m (6,)``, ``rotation_deg (6,)``, ``tested (6,)`` and the two
+            criteria ``contact``, ``bench`` (before the penetration rule).
         """
         if self.object is None:
             raise RuntimeError("GraspWorld.test_frame: set_object first")
@@ -364,6 +366,9 @@ class GraspWorld:
         self._set_hand(q)
         self._set_object(pose)
         target, penetration, pushed = self.push_targets(q)
+        touching = np.array(
+            [bool(set(pushed) & set(fs.links)) for fs in self.hand.spec.fingers.values()]
+        )
         held = np.zeros(6, bool)
         displacement = np.full(6, np.nan)
         rotation = np.full(6, np.nan)
@@ -395,7 +400,8 @@ class GraspWorld:
             held[k] = bool(self._closest(_TOUCH_M))
         return {
             "parts_penetration_m": penetration,
-            "pushed_links": pushed,
+            "pushed_links": len(pushed),
+            "touching": touching,
             "held": held,
             "displacement_m": displacement,
             "rotation_deg": rotation,
@@ -534,7 +540,8 @@ def simulate_sequence(
 
     Returns:
         Per evaluated frame arrays (``frame``, ``penetration_m`` on the mesh,
-        ``parts_penetration_m`` on the convex parts, ``held``, ...) and the sequence's result.
+        ``parts_penetration_m`` on the convex parts, ``touching`` per finger of ``fingers``,
+        ``held``, ...) and the sequence's result.
     """
     p = world.params
     frames = [] if first_contact < 0 else list(range(first_contact, len(q), p.stride))
@@ -560,13 +567,16 @@ def simulate_sequence(
                 found[key] = t
         if p.early_stop and found["contact"] is not None and found["bench"] is not None:
             break
-    keys = ("frame", "penetration_m", "parts_penetration_m", "pushed_links", "held",
+    keys = ("frame", "penetration_m", "parts_penetration_m", "pushed_links", "touching", "held",
             "displacement_m", "rotation_deg", "tested", "contact", "bench")  # fmt: skip
+    width = {"touching": len(world.hand.spec.fingers)} | dict.fromkeys(
+        ("held", "displacement_m", "rotation_deg", "tested"), 6
+    )
     arrays = {
-        k: np.array([r[k] for r in rows]) if rows else np.zeros((0, 6) if k in
-           ("held", "displacement_m", "rotation_deg", "tested") else 0)
+        k: np.array([r[k] for r in rows]) if rows else np.zeros((0, width[k]) if k in width else 0)
         for k in keys
-    }  # fmt: skip
+    }
+    arrays["fingers"] = np.array(list(world.hand.spec.fingers))
     pen, parts = arrays["penetration_m"], arrays["parts_penetration_m"]
     result = {
         "frames": len(q),

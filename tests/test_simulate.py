@@ -73,6 +73,7 @@ def test_wrapped_hand_holds_the_box_in_all_six_directions(scene):
     assert result["tested"].all() and result["held"].all()
     assert result["contact"] and result["bench"]
     assert result["pushed_links"] >= 3  # three fingers (and the palm) touch the box
+    assert result["touching"].tolist() == [True, True, True]
     assert result["parts_penetration_m"] < 1e-3
     assert np.all(result["displacement_m"] < 0.01) and np.all(result["rotation_deg"] < 15)
 
@@ -91,6 +92,7 @@ def test_object_away_from_the_hand_falls(scene):
     away[0, 3] += 0.2
     result = world.test_frame(_closed(hand, world, pose), away)
     assert result["pushed_links"] == 0 and result["parts_penetration_m"] == 0.0
+    assert not result["touching"].any()
     assert not result["contact"] and not result["bench"] and not result["held"].any()
 
 
@@ -134,12 +136,15 @@ def test_penetrating_start_does_not_count_and_sequence_logic(scene, box_sdf):
     world_1.set_object(folder / "box.obj")
     arrays, result = simulate_sequence(world_1, q, poses, first_contact=2, sdf=box_sdf)
     assert arrays["frame"].tolist() == [2, 3]  # early stop after the first counted success
+    assert arrays["fingers"].tolist() == ["thumb", "index", "middle"]
+    assert arrays["touching"].shape == (2, 3) and arrays["touching"][1].all()
     assert arrays["penetration_m"][0] > p.penetration_tol_m and arrays["contact"][0]
     assert arrays["penetration_m"][0] == pytest.approx(0.004, abs=5e-4)  # on the mesh
     assert arrays["parts_penetration_m"][0] == pytest.approx(0.004, abs=5e-4)  # parts = mesh
     assert result["success_contact_raw"] and result["success_contact"]
     assert result["success_frame"] == 3 and result["evaluated"] == 2
-    _, none = simulate_sequence(world_1, q, poses, first_contact=-1, sdf=box_sdf)
+    empty, none = simulate_sequence(world_1, q, poses, first_contact=-1, sdf=box_sdf)
+    assert empty["touching"].shape == (0, 3) and empty["held"].shape == (0, 6)
     assert none["evaluated"] == 0 and not none["success_contact"]
 
 

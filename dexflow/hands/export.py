@@ -211,8 +211,12 @@ def with_default_inertials(
             filled.append(link.get("name"))
     for mesh in tree.getroot().iter("mesh"):
         if mesh.get("filename"):
-            path = _urdf_mesh_path(mesh.get("filename"), urdf_path.parent)
-            mesh.set("filename", str(Path(path).resolve()))
+            try:
+                path = _urdf_mesh_path(mesh.get("filename"), urdf_path.parent)
+            except HandConfigError:  # an unresolvable package:// mesh stays as it was
+                continue
+            if path.is_file():  # (collision meshes are checked when the hand is loaded)
+                mesh.set("filename", str(path.resolve()))
     ET.indent(tree)
     text = ET.tostring(tree.getroot(), encoding="unicode")
     header = (
