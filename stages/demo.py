@@ -41,6 +41,7 @@ def main() -> int:
             "frames": manifest["num_frames"],
             "dropout_frames": sum(e["dropout_frames"] for e in entries),
             "tracking_lost_frames": sum(e["tracking_lost_frames"] for e in entries),
+            "template_frames": sum(e["template_frames"] for e in entries),
         },
     )
     names = [e["name"] for e in entries]

@@ -7,11 +7,14 @@ import pytest
 
 from dexflow.data.demo import DemoConfig, generate_demo
 from dexflow.data.ycb_standins import STANDINS, build_standin
+from dexflow.human.cleaning import detect_bad_frames
+from dexflow.human.keypoints import FINGERTIPS
 from dexflow.human.model import HandShape, finger_capsules
 from dexflow.io.sequence import load_sequence
-from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.objects.sdf import SignedDistanceGrid, signed_distance
 
 SMALL = dict(objects=["061_foam_brick"], sequences_per_object=2, min_frames=60, max_frames=70)
+NO_TEMPLATE = dict(template_start_probability=0.0, template_end_probability=0.0)
 
 
 def _files(root):
@@ -64,6 +67,9 @@ def test_annotation_error_puts_contacts_inside_or_hovering(tmp_path, mode, lo, h
         noise_std_m=0.0,
         dropout_bursts=0.0,
         tracking_loss_probability=0.0,
+        **NO_TEMPLATE,
+        hold_penetration_probability=0.0,  # only the per-finger annotation error here
+        tip_inside_probability=0.0,
         inside_fraction=1.0 if mode == "inside" else 0.0,
         hover_fraction=1.0 if mode == "hover" else 0.0,
     )
@@ -86,6 +92,7 @@ def test_tracker_artefacts_are_present_and_marked(tmp_path):
         sequences_per_object=1,
         dropout_bursts=3.0,
         tracking_loss_probability=1.0,
+        **NO_TEMPLATE,  # template runs: test_template_runs_at_the_start_and_end_like_dexycb
     )
     generate_demo(cfg, tmp_path)
     seq = load_sequence(next((tmp_path / "sequences").glob("*.npz")), data_root=tmp_path)
@@ -99,3 +106,84 @@ def test_tracker_artefacts_are_present_and_marked(tmp_path):
     ok = ~dropped & ~lost
     noise = np.linalg.norm(seq.keypoints[ok] - seq.extras["gt_keypoints"][ok], axis=-1)
     assert 0.001 < np.median(noise) < 0.02  # a tracker's few millimetres, plus annotation error
+
+
+def test_template_runs_at_the_start_and_end_like_dexycb(tmp_path):
+    cfg = DemoConfig(seed=5, **SMALL, template_start_probability=1.0, template_end_probability=1.0)
+    generate_demo(cfg, tmp_path)
+    for path in sorted((tmp_path / "sequences").glob("*.npz")):
+        seq = load_sequence(path, data_root=tmp_path)
+        template, lost = seq.extras["gt_template"], seq.extras["gt_tracking_lost"]
+        n = seq.num_frames
+        starts = np.flatnonzero(np.diff(np.r_[0, template.astype(int)]) == 1)
+        assert list(starts) in ([0], [0, n - template[::-1].argmin()]), starts
+        assert template[0] and template[-1] and template.sum() < n / 2
+        assert seq.valid[template].all() and lost[template].all()  # valid, as uncleaned
+        frames = seq.keypoints[template]
+        np.testing.assert_array_equal(frames, np.repeat(frames[:1], len(frames), axis=0))
+        away = np.linalg.norm(frames[:, 0] - seq.extras["gt_keypoints"][template, 0], axis=-1)
+        assert (away > 0.45).all() and (away < 1.0).all()
+        # The cleaner finds every lost frame (template runs and teleports) and no real one.
+        observed, found = detect_bad_frames(seq.keypoints, seq.valid, 0.08, fps=seq.fps)
+        np.testing.assert_array_equal(found, lost)
+        np.testing.assert_array_equal(observed, seq.valid & ~lost)
+
+
+def _held_tip_and_wrist_distance(seq, mesh, keypoints):
+    held = seq.gt_contact.sum(axis=1) >= 2
+    held &= ~seq.extras["gt_tracking_lost"] & seq.valid
+    inv = np.linalg.inv(seq.obj_pose[held])
+    points = keypoints[held][:, [0, *FINGERTIPS]]
+    local = np.einsum("tij,tkj->tki", inv[:, :3, :3], points) + inv[:, None, :3, 3]
+    dist = signed_distance(mesh, local.reshape(-1, 3)).reshape(len(local), -1)
+    return dist[:, 1:].min(axis=1), dist[:, 0]
+
+
+def test_annotated_hand_penetrates_the_object_while_holding(tmp_path):
+    from dexflow.objects.mesh import load_mesh
+
+    common = dict(
+        seed=1, objects=["005_tomato_soup_can"], sequences_per_object=1, **NO_TEMPLATE,
+        tracking_loss_probability=0.0, dropout_bursts=0.0, hold_penetration_wobble_m=0.0,
+    )  # fmt: skip
+    tips = DemoConfig(
+        **common, hold_penetration_probability=0.0, tip_inside_probability=1.0,
+        tip_depth_mean_m=1.0, tip_depth_max_m=0.006,  # D = 6 mm
+    )  # fmt: skip
+    palm = DemoConfig(
+        **common, hold_penetration_probability=1.0, hold_penetration_m=(0.008, 0.008),
+        tip_inside_probability=0.0,
+    )  # fmt: skip
+    for name, cfg in (("tips", tips), ("palm", palm)):
+        generate_demo(cfg, tmp_path / name)
+    seqs = {
+        name: load_sequence(next((tmp_path / name / "sequences").glob("*.npz")))
+        for name in ("tips", "palm")
+    }
+    mesh = load_mesh(tmp_path / "tips" / seqs["tips"].obj_mesh)
+    seq = seqs["tips"]
+    tip, _ = _held_tip_and_wrist_distance(seq, mesh, seq.keypoints)
+    clean_tip, _ = _held_tip_and_wrist_distance(seq, mesh, seq.extras["gt_keypoints"])
+    assert np.median(clean_tip) > 0.0  # the truth touches with the skin, tips outside
+    assert np.median(tip) < -0.003  # the annotation: the deepest fingertip 6 mm inside
+    seq = seqs["palm"]
+    _, wrist = _held_tip_and_wrist_distance(seq, mesh, seq.keypoints)
+    _, clean_wrist = _held_tip_and_wrist_distance(seq, mesh, seq.extras["gt_keypoints"])
+    assert 0.004 < np.median(clean_wrist - wrist) < 0.012  # the whole hand 8 mm deeper
+
+
+def test_default_demo_penetrates_like_dexycb(tmp_path):
+    from dexflow.objects.mesh import load_mesh
+
+    objects = ["005_tomato_soup_can", "025_mug", "006_mustard_bottle", "024_bowl"]
+    generate_demo(DemoConfig(seed=0, objects=objects, sequences_per_object=2), tmp_path, 2)
+    deepest = []
+    for path in sorted((tmp_path / "sequences").glob("*.npz")):
+        seq = load_sequence(path, data_root=tmp_path)
+        tip, _ = _held_tip_and_wrist_distance(
+            seq, load_mesh(tmp_path / seq.obj_mesh), seq.keypoints
+        )
+        deepest.append(np.maximum(-tip, 0.0))
+    deepest = np.concatenate(deepest)
+    assert 0.001 < np.median(deepest) < 0.008, np.median(deepest)  # DexYCB: ~4 mm
+    assert 0.1 < (deepest > 0.01).mean() < 0.45, (deepest > 0.01).mean()  # DexYCB: ~28 %

@@ -10,9 +10,17 @@ made realistic the way real captures are:
   (``inside_fraction`` of fingers), hovers a few mm off it with a slow wobble
   (``hover_fraction``), or touches it;
 - tracker noise on every keypoint (white plus slowly drifting, ``noise_std_m`` each);
+- the annotated hand sits a few millimetres too deep into the object while holding it: the
+  whole hand (palm included) is shifted along its approach during the hold
+  (``hold_penetration_*``), so, as in DexYCB, fingertip keypoints are inside the object in most
+  held frames (a median of a few mm, over 10 mm in about a quarter of them);
 - dropouts: short bursts of NaN frames, marked ``valid = False``;
 - tracking loss: short bursts where the tracker reports a default flat hand tens of cm away
-  (still ``valid = True``, as a tracker would; ``gt_tracking_lost`` marks them).
+  (still ``valid = True``, as a tracker would; ``gt_tracking_lost`` marks them);
+- unannotated frames at the MANO-like template: most sequences START with a run of frames
+  where the hand is a fixed flat default hand ~0.7 m away, identical every frame, and some END
+  with one (``template_*``; ``valid = True`` as in an uncleaned capture, ``gt_tracking_lost``
+  and ``gt_template`` mark them).
 
 Everything is a deterministic function of the configuration: the same seed gives byte-identical
 files.
@@ -30,6 +38,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from dexflow.data.grasps import GRASP_TYPES, Grasp, synthesize_grasp
 from dexflow.data.ycb_standins import STANDINS, build_standin
+from dexflow.human.keypoints import FINGER_KEYPOINTS, FINGERS
 from dexflow.human.model import HandShape, finger_capsules, forward_keypoints
 from dexflow.io.atomic import save_json
 from dexflow.io.sequence import Sequence, save_sequence
@@ -67,6 +76,18 @@ class DemoConfig:
         tracking_loss_probability: Chance of a burst of "teleported" frames in a sequence.
         tracking_loss_length: Range of frames per tracking-loss burst.
         tracking_loss_distance_m: Range of how far away the lost hand is reported.
+        template_start_probability: Chance that a sequence starts with template frames.
+        template_start_length: Range of frames of that run.
+        template_end_probability: Chance that a sequence ends with template frames.
+        template_end_length: Range of frames of that run.
+        template_distance_m: Range of how far the template hand is from the real one.
+        template_max_fraction: Most of a sequence that template runs may take together.
+        hold_penetration_probability: Chance that the annotated hand sits too deep while holding.
+        hold_penetration_m: Range of how far it is shifted into the object along its approach.
+        hold_penetration_wobble_m: Amplitude of the slow wobble of that shift and of tip depths.
+        tip_inside_probability: Chance that pressing fingertips are annotated inside the object.
+        tip_depth_mean_m: Mean depth of the deepest fingertip keypoint (exponential), metres.
+        tip_depth_max_m: Largest such depth, metres.
         hand_scale: Range of hand sizes (1 = average adult).
         contact_tolerance_m: Skin-to-surface distance that counts as ground-truth contact.
         sdf_spacing_m: Grid spacing of the signed distance used for synthesis.
@@ -90,6 +111,38 @@ class DemoConfig:
     tracking_loss_probability: float = 0.4
     tracking_loss_length: tuple[int, int] = (2, 5)
     tracking_loss_distance_m: tuple[float, float] = (0.2, 0.5)
+    template_start_probability: float = 0.7
+    template_start_length: tuple[int, int] = (3, 25)
+    template_end_probability: float = 0.15
+    template_end_length: tuple[int, int] = (3, 12)
+    template_distance_m: tuple[float, float] = (0.6, 0.8)
+    template_max_fraction: float = 0.45
+    hold_penetration_probability: float = 0.5
+    hold_penetration_m: tuple[float, float] = (0.002, 0.01)
+    hold_penetration_wobble_m: float = 0.002
+    tip_inside_probability: float = 0.8
+    tip_depth_mean_m: float = 0.017
+    tip_depth_max_m: float = 0.03
+
+    def __post_init__(self) -> None:
+        from dexflow.errors import ConfigError
+
+        for key in ("template_start_probability", "template_end_probability",
+                    "hold_penetration_probability", "tip_inside_probability",
+                    "template_max_fraction"):  # fmt: skip
+            value = getattr(self, key)
+            if not 0.0 <= value <= 1.0:
+                raise ConfigError(f"demo.{key}: expected within [0, 1], found {value!r}")
+        for key in ("template_start_length", "template_end_length", "template_distance_m",
+                    "hold_penetration_m"):  # fmt: skip
+            lo, hi = getattr(self, key)
+            if not 0 <= lo <= hi:
+                raise ConfigError(f"demo.{key}: expected [lo, hi] with 0 <= lo <= hi, "
+                                  f"found {[lo, hi]!r}")  # fmt: skip
+        for key in ("tip_depth_mean_m", "tip_depth_max_m", "hold_penetration_wobble_m"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"demo.{key}: expected >= 0, found {getattr(self, key)!r}")
+
     hand_scale: tuple[float, float] = (0.9, 1.1)
     contact_tolerance_m: float = 0.001
     sdf_spacing_m: float = 0.002
@@ -110,8 +163,9 @@ def _interp_poses(a: np.ndarray, b: np.ndarray, weights: np.ndarray) -> np.ndarr
     return out
 
 
-def _transform(rotvec, translation, centre=np.zeros(3)) -> np.ndarray:
-    """Rotation by ``rotvec`` about ``centre`` followed by ``translation``."""
+def _transform(rotvec, translation, centre: np.ndarray | None = None) -> np.ndarray:
+    """Rotation by ``rotvec`` about ``centre`` (default the origin) followed by ``translation``."""
+    centre = np.zeros(3) if centre is None else centre
     out = np.eye(4)
     out[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
     out[:3, 3] = centre - out[:3, :3] @ centre + translation
@@ -149,18 +203,25 @@ def _make_sequence(
     t_close, t_hold, t_release = n_reach, n_reach + n_close, num_frames - n_release
 
     # Where the object rests in the world, and how it moves once held.
-    rest = _transform([0.0, 0.0, rng.uniform(-np.pi, np.pi)], [rng.uniform(0.3, 0.5),
-                      rng.uniform(-0.15, 0.15), rng.uniform(0.05, 0.15)])
+    rest = _transform(
+        [0.0, 0.0, rng.uniform(-np.pi, np.pi)],
+        [rng.uniform(0.3, 0.5), rng.uniform(-0.15, 0.15), rng.uniform(0.05, 0.15)],
+    )
     centre = rest[:3, 3]
     axis = rng.normal(size=3)
-    lift = _transform(axis / np.linalg.norm(axis) * rng.uniform(0.2, 0.6),
-                      [rng.uniform(-0.12, 0.12), rng.uniform(-0.12, 0.12), rng.uniform(0.1, 0.2)],
-                      centre)
+    lift = _transform(
+        axis / np.linalg.norm(axis) * rng.uniform(0.2, 0.6),
+        [rng.uniform(-0.12, 0.12), rng.uniform(-0.12, 0.12), rng.uniform(0.1, 0.2)],
+        centre,
+    )
     motion = np.repeat(np.eye(4)[None], num_frames, axis=0)
     if release:
         n_up = n_hold * 2 // 3
-        place = _transform([0.0, 0.0, rng.uniform(-0.5, 0.5)],
-                           [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), 0.0], centre)
+        place = _transform(
+            [0.0, 0.0, rng.uniform(-0.5, 0.5)],
+            [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), 0.0],
+            centre,
+        )
         motion[t_hold : t_hold + n_up] = _interp_poses(np.eye(4), lift, _min_jerk(n_up))
         motion[t_hold + n_up : t_release] = _interp_poses(lift, place, _min_jerk(n_hold - n_up))
         motion[t_release:] = place
@@ -171,8 +232,14 @@ def _make_sequence(
     # The wrist: reach from a random start, ride with the object, retreat after release.
     grasp_wrist = rest @ grasp.wrist_pose
     approach_world = rest[:3, :3] @ grasp.approach
-    start = _transform(rng.normal(size=3) * 0.3, -approach_world * rng.uniform(0.2, 0.3)
-                       + [0.0, 0.0, rng.uniform(0.05, 0.15)], grasp_wrist[:3, 3]) @ grasp_wrist
+    start = (
+        _transform(
+            rng.normal(size=3) * 0.3,
+            -approach_world * rng.uniform(0.2, 0.3) + [0.0, 0.0, rng.uniform(0.05, 0.15)],
+            grasp_wrist[:3, 3],
+        )
+        @ grasp_wrist
+    )
     wrist = motion @ grasp_wrist
     wrist[:t_close] = _interp_poses(start, grasp_wrist, _min_jerk(n_reach))
     if release:
@@ -221,10 +288,23 @@ def _make_sequence(
 
     # Ground truth contact from the clean hand's skin, in the object's frame.
     world_to_obj = np.linalg.inv(obj_pose)
-    kp_obj = np.einsum("tij,tkj->tki", world_to_obj[:, :3, :3], clean_kp) + world_to_obj[:, None, :3, 3]
+    kp_obj = (
+        np.einsum("tij,tkj->tki", world_to_obj[:, :3, :3], clean_kp) + world_to_obj[:, None, :3, 3]
+    )
     skin, radii = finger_capsules(kp_obj, shape)
     skin_dist = (sdf.query(skin) - radii).min(axis=-1)  # (T, 5)
     gt_contact = skin_dist <= cfg.contact_tolerance_m
+
+    # Penetrating annotation while holding: the whole hand a few mm too deep (palm included),
+    # fingertips inside the object (a stream of its own: one draw from the sequence's).
+    extra = np.random.default_rng(rng.integers(2**63))
+    approach_world = obj_pose[:, :3, :3] @ grasp.approach
+    shift = _hold_penetration(extra, cfg, ramp, times, approach_world)
+    keypoints = keypoints + shift[:, None]
+    pressing = [f for f in range(5) if in_contact[f] and modes[f] != "hover"]
+    keypoints = keypoints + _tip_penetration(
+        extra, cfg, keypoints, obj_pose, sdf, ramp, times, pressing
+    )
 
     # Tracker artefacts.
     white = rng.normal(scale=cfg.noise_std_m, size=keypoints.shape)
@@ -243,6 +323,12 @@ def _make_sequence(
         keypoints[lost] = forward_keypoints(np.zeros((lost.sum(), 20)), far, shape)
     dropped = _bursts(rng, num_frames, int(rng.poisson(cfg.dropout_bursts)), cfg.dropout_length)
     dropped &= ~lost
+
+    unannotated = _template_frames(extra, cfg, num_frames)
+    if unannotated.any():
+        keypoints[unannotated] = _template_hand(extra, cfg, wrist[~unannotated][0, :3, 3])
+    lost |= unannotated
+    dropped &= ~unannotated
     keypoints[dropped] = np.nan
 
     seq = Sequence(
@@ -258,6 +344,7 @@ def _make_sequence(
         extras={
             "gt_keypoints": clean_kp,
             "gt_tracking_lost": lost,
+            "gt_template": unannotated,
             "grasp_type": np.array(template.name),
             "hand_scale": np.array(shape.scale),
         },
@@ -272,8 +359,125 @@ def _make_sequence(
         "annotation": modes,
         "dropout_frames": int(dropped.sum()),
         "tracking_lost_frames": int(lost.sum()),
+        "template_frames": int(unannotated.sum()),
+        "hold_penetration_mm": float(1000 * np.linalg.norm(shift, axis=-1).max()),
     }
     return seq, info
+
+
+def _hold_penetration(
+    rng: np.random.Generator,
+    cfg: DemoConfig,
+    ramp: np.ndarray,
+    times: np.ndarray,
+    approach_world: np.ndarray,
+) -> np.ndarray:
+    """(T, 3) shift of the annotated hand into the object while it holds it (0 elsewhere).
+
+    Args:
+        rng: The sequence's generator.
+        cfg: ``hold_penetration_*`` say how often and how far.
+        ramp: (T,) finger closure ramp: 0 on the reach, 1 while holding, back to 0 on release.
+        times: (T,) frame times, seconds.
+        approach_world: (T, 3) unit approach direction (hand -> object) per frame, world.
+    """
+    if not rng.random() < cfg.hold_penetration_probability:
+        return np.zeros((len(ramp), 3))
+    depth = rng.uniform(*cfg.hold_penetration_m)
+    period, phase = rng.uniform(0.8, 2.0), rng.uniform(0, 2 * np.pi)
+    wobble = cfg.hold_penetration_wobble_m * np.sin(2 * np.pi * times / period + phase)
+    return (np.maximum(depth + wobble, 0.0) * ramp)[:, None] * approach_world
+
+
+def _tip_penetration(
+    rng: np.random.Generator,
+    cfg: DemoConfig,
+    keypoints: np.ndarray,
+    obj_pose: np.ndarray,
+    sdf: SignedDistanceGrid,
+    ramp: np.ndarray,
+    times: np.ndarray,
+    fingers: list[int],
+) -> np.ndarray:
+    """(T, 21, 3) displacement that puts the fingertip keypoints of ``fingers`` inside the object.
+
+    Of ``fingers``, those whose tip keypoint is within 15 mm of the surface while held take
+    part. With probability ``tip_inside_probability`` one of them has its tip keypoint
+    ``D ~ min(Exponential(tip_depth_mean_m), tip_depth_max_m)`` inside the surface while held
+    (plus a slow wobble of ``hold_penetration_wobble_m``), the others a random fraction of D; the
+    finger's PIP and DIP follow a third and two thirds of its tip's displacement, along the
+    surface normal at the tip. Weighted by ``ramp**3``, so it grows as the fingers close and
+    vanishes on release; only where the tip is within 3 cm of the surface.
+
+    Args:
+        rng: The sequence's generator.
+        cfg: ``tip_*`` and ``hold_penetration_wobble_m`` say how often and how deep.
+        keypoints: (T, 21, 3) annotated keypoints, world.
+        obj_pose: (T, 4, 4) object-to-world.
+        sdf: The object's signed distance.
+        ramp: (T,) finger closure ramp, 0..1.
+        times: (T,) frame times, seconds.
+        fingers: Fingers (0 thumb .. 4 little) that press on the object.
+    """
+    out = np.zeros_like(keypoints)
+    rot, trans = obj_pose[:, :3, :3], obj_pose[:, :3, 3]
+    held = ramp >= 0.99
+
+    def tip_distance(chains: np.ndarray, moved: np.ndarray):
+        tips = (keypoints + moved)[:, chains[:, -1]] - trans[:, None]
+        dist, grad = sdf.query(np.einsum("tji,tfj->tfi", rot, tips), with_gradient=True)
+        normal = np.einsum("tij,tfj->tfi", rot, grad)
+        return dist, normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
+
+    if not fingers or not held.any():
+        return out
+    chains = np.array([FINGER_KEYPOINTS[FINGERS[f]] for f in fingers])  # (F, 4)
+    dist, _ = tip_distance(chains, out)
+    chains = chains[np.median(dist[held], axis=0) < 0.015]
+    if not len(chains) or not rng.random() < cfg.tip_inside_probability:
+        return out
+    deepest = min(rng.exponential(cfg.tip_depth_mean_m), cfg.tip_depth_max_m)
+    depth = deepest * rng.uniform(0.0, 1.0, size=len(chains))
+    depth[rng.integers(len(chains))] = deepest
+    period, phase = rng.uniform(0.8, 2.0), rng.uniform(0, 2 * np.pi)
+    wobble = cfg.hold_penetration_wobble_m * np.sin(2 * np.pi * times / period + phase)
+    target = -(depth[None] + wobble[:, None])  # (T, F)
+    for _ in range(3):  # the surface is curved: a few Newton steps along its normal
+        dist, normal = tip_distance(chains, out)
+        weight = np.where(dist < 0.03, ramp[:, None] ** 3, 0.0)
+        step = ((target - dist) * weight)[..., None] * normal  # (T, F, 3) of the tip
+        for share, column in zip((1 / 3, 2 / 3, 1.0), (1, 2, 3), strict=True):
+            out[:, chains[:, column]] += share * step
+    return out
+
+
+def _template_frames(rng: np.random.Generator, cfg: DemoConfig, num_frames: int) -> np.ndarray:
+    """(T,) runs of unannotated frames at the start and at the end of a sequence."""
+    budget = int(cfg.template_max_fraction * num_frames)
+    n_start = n_end = 0
+    if rng.random() < cfg.template_start_probability:
+        n_start = min(
+            int(rng.integers(cfg.template_start_length[0], cfg.template_start_length[1] + 1)),
+            budget,
+        )
+    if rng.random() < cfg.template_end_probability:
+        n_end = min(
+            int(rng.integers(cfg.template_end_length[0], cfg.template_end_length[1] + 1)),
+            budget - n_start,
+        )
+    mask = np.zeros(num_frames, dtype=bool)
+    mask[:n_start] = True
+    mask[num_frames - n_end :] = True
+    return mask
+
+
+def _template_hand(rng: np.random.Generator, cfg: DemoConfig, near: np.ndarray) -> np.ndarray:
+    """(21, 3) a flat average hand in a fixed pose ``template_distance_m`` from ``near``."""
+    direction = rng.normal(size=3)
+    direction *= rng.uniform(*cfg.template_distance_m) / np.linalg.norm(direction)
+    pose = np.eye(4)
+    pose[:3, 3] = near + direction
+    return forward_keypoints(np.zeros((1, 20)), pose[None], HandShape())[0]
 
 
 def _grasp_with_fallback(sdf, grasp_types, first, rng, shape) -> Grasp:
