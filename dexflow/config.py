@@ -189,10 +189,6 @@ class RunParams:
             self.address,
         )
 
-    @property
-    def jobs(self) -> int:
-        return 1 if self.backend == "sequential" else self.n_jobs
-
 
 @dataclass
 class PipelineParams:

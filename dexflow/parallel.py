@@ -62,17 +62,17 @@ def _run(func: Callable[[Any], T], item: Any) -> ItemResult[T]:
         )
 
 
-def _run_in(cwd: str, func: Callable[[Any], T], index: int, item: Any) -> tuple[int, ItemResult]:
+def _run_in(cwd: str, func: Callable[[Any], T], item: Any) -> ItemResult[T]:
     """A Ray task: run in the driver's working directory, so that relative paths hold."""
     try:
         os.chdir(cwd)
     except OSError as exc:
-        return index, ItemResult(
+        return ItemResult(
             item,
             error=f"RuntimeError: the driver's directory {cwd} does not exist on this Ray node "
             f"({exc}); run dexflow from a filesystem shared by every node",
         )
-    return index, _run(func, item)
+    return _run(func, item)
 
 
 def _settings(run: int | RunParams) -> tuple[str, int, str | None]:
@@ -172,12 +172,12 @@ def _map_ray(
     while queue or pending:
         while queue and len(pending) < limit:
             index, item = queue.pop()
-            pending[task.remote(cwd, func_ref, index, item)] = index
+            pending[task.remote(cwd, func_ref, item)] = index
         done, _ = ray.wait(list(pending), num_returns=1)
         for ref in done:
             index = pending.pop(ref)
             try:
-                results[index] = ray.get(ref)[1]
+                results[index] = ray.get(ref)
             except ray.exceptions.RayError as exc:  # the worker died (crash, memory, node lost)
                 results[index] = ItemResult(
                     items[index], error=f"{type(exc).__name__}: {exc}".splitlines()[0],

@@ -310,12 +310,11 @@ def load_sequence(path: str | Path, data_root: str | Path | None = None) -> Sequ
     return validate_sequence(seq, path, data_root)
 
 
-def stage_files(in_root: str | Path, out_root: str | Path | None = None) -> list[Path]:
+def stage_files(in_root: str | Path) -> list[Path]:
     """The sequence files a stage maps over: ``in_root/sequences/*.npz``, sorted.
 
-    The output directory is not emptied here: :class:`dexflow.resume.StageOutput` keeps what an
-    interrupted run with the same params completed and empties it otherwise. ``out_root``, if
-    given, gets its ``sequences/`` directory.
+    The output directory is left alone: :class:`dexflow.resume.StageOutput` keeps what an
+    interrupted run with the same params completed and empties it otherwise.
 
     Raises:
         FileNotFoundError: ``in_root/sequences`` holds no ``.npz`` file.
@@ -324,6 +323,4 @@ def stage_files(in_root: str | Path, out_root: str | Path | None = None) -> list
     files = sorted((in_root / "sequences").glob("*.npz"))
     if not files:
         raise FileNotFoundError(f"{in_root / 'sequences'}: no *.npz sequence files")
-    if out_root is not None:
-        (Path(out_root) / "sequences").mkdir(parents=True, exist_ok=True)
     return files
