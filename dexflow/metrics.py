@@ -8,6 +8,8 @@ Definitions (per sequence; the aggregate is the mean over sequences unless said 
 
 - ``keypoint_error_mm``: mean over observed frames (valid and not tracking-lost) of the mean
   distance between the robot's keypoints and the human keypoints they are mapped to.
+- ``fingertip_error_mm``: the same over the fingertip keypoints only (the keypoints mapped to
+  MANO tips 4, 8, 12, 16, 20): how far the robot's fingertips are from the human's.
 - ``time_aligned_cd_mm``: per observed frame, the symmetric Chamfer distance between the human
   keypoint set and the robot keypoint set, ``½ (mean_a min_b |a - b| + mean_b min_a |a - b|)``,
   averaged over frames. It compares shapes at the same instant without trusting the
@@ -20,7 +22,8 @@ Definitions (per sequence; the aggregate is the mean over sequences unless said 
 - ``pd_mm`` (penetration depth): per frame the depth of the deepest hand surface point inside
   the object (signed distance grid; 0 if none), averaged over frames
   (:func:`dexflow.measures.penetration_depth`, the same definition stage simulate's
-  penetration rule uses).
+  penetration rule uses). ``pd_max_mm``: the deepest of any frame (the aggregate is the
+  largest over sequences, not the mean).
 - ``cd_mm`` (contact distance): per frame and finger in contact (stage contact's final
   states), the finger's smallest distance to the object surface clipped at 0, averaged over the
   fingers in contact, then over frames with any contact.
@@ -243,8 +246,10 @@ def trajectory_metrics(
     """
     with torch.no_grad():
         robot = hand.keypoints(torch.as_tensor(q, dtype=hand.dtype)).numpy()
-    error = np.linalg.norm(robot - human, axis=-1).mean(axis=1)
-    error = np.where(observed, error, np.nan)
+    distance = np.linalg.norm(robot - human, axis=-1)  # (T, K)
+    error = np.where(observed, distance.mean(axis=1), np.nan)
+    tips = [i for i, m in enumerate(hand.mano_indices) if m in TIPS]
+    tip_error = np.where(observed, distance[:, tips].mean(axis=1), np.nan)
     chamfer = np.full(len(q), np.nan)
     if observed.any():
         chamfer[observed] = chamfer_per_frame(human[observed], robot[observed])
@@ -259,15 +264,16 @@ def trajectory_metrics(
     tol = params.limit_tolerance_rad
     off_limits = ((joints < lower - tol) | (joints > upper + tol)).any(axis=1)
     violation = (pd > params.pd_violation_m) | (spd > params.spd_violation_m) | off_limits
-    tips = [i for i, m in enumerate(hand.mano_indices) if m in TIPS]
     speed_robot = fingertip_speeds(robot[:, tips], fps, observed)
     speed_human = fingertip_speeds(human[:, tips], fps, observed)
     scalars = {
         "keypoint_error_mm": _mean_mm(error),
+        "fingertip_error_mm": _mean_mm(tip_error),
         "time_aligned_cd_mm": _mean_mm(chamfer),
         "velocity_kl": velocity_kl(speed_human, speed_robot, bins=params.kl_bins),
         "rms_acc": rms_acceleration(joints, fps),
         "pd_mm": _mean_mm(pd),
+        "pd_max_mm": float(pd.max() * 1000) if len(pd) else float("nan"),
         "cd_mm": _mean_mm(cd),
         "spd_mm": _mean_mm(spd),
         "fvr": float(violation.mean()),
@@ -405,7 +411,8 @@ def _aggregate(ok: dict[str, dict]) -> dict:
         for key in keys:
             values = np.array([row.get(key, np.nan) for row in rows], dtype=float)
             values = values[np.isfinite(values)]
-            out[f"{method}.{key}"] = float(values.mean()) if len(values) else float("nan")
+            reduce = np.max if key.endswith("_max_mm") else np.mean
+            out[f"{method}.{key}"] = float(reduce(values)) if len(values) else float("nan")
         human = [e["per_frame"][method]["tip_speed_human"] for e in ok.values()]
         robot = [e["per_frame"][method]["tip_speed_robot"] for e in ok.values()]
         if human:
@@ -425,8 +432,8 @@ def _write_tables(ok: dict[str, dict], hand: str, out_root: Path, plots_root: Pa
     out_root.mkdir(parents=True, exist_ok=True)
     plots_root.mkdir(parents=True, exist_ok=True)
     columns = ["sequence", "object", "hand", "method", "frames", "keypoint_error_mm",
-               "time_aligned_cd_mm", "velocity_kl", "rms_acc", "pd_mm", "cd_mm", "spd_mm", "fvr",
-               "ssr", "ssr_bench"]  # fmt: skip
+               "fingertip_error_mm", "time_aligned_cd_mm", "velocity_kl", "rms_acc", "pd_mm",
+               "pd_max_mm", "cd_mm", "spd_mm", "fvr", "ssr", "ssr_bench"]  # fmt: skip
     with atomic_path(out_root / "sequences.csv") as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(columns)

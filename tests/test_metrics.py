@@ -93,6 +93,15 @@ def test_identical_trajectories_give_zero_error_chamfer_and_kl(allegro):
         MetricsParams(),
     )  # fmt: skip
     assert moved["keypoint_error_mm"] == pytest.approx(2.0, abs=1e-6)
+    tips_only = human.copy()
+    tips = [i for i, m in enumerate(allegro.mano_indices) if m in (4, 8, 12, 16, 20)]
+    tips_only[:, tips] += np.array([0.0, 0.0, 0.005])
+    moved, _ = trajectory_metrics(
+        allegro, q, tips_only, np.ones(40, bool), poses, sdf, np.zeros((40, 4), bool), 30.0,
+        MetricsParams(),
+    )  # fmt: skip
+    assert moved["fingertip_error_mm"] == pytest.approx(5.0, abs=1e-6)
+    assert moved["keypoint_error_mm"] == pytest.approx(5.0 * len(tips) / len(tips_only[0]))
 
 
 def test_rms_acceleration_of_a_known_parabola(allegro):
