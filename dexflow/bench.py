@@ -4,11 +4,19 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
 
-__all__ = ["bench_fk", "bench_pipeline", "bench_refine", "bench_retarget", "bench_simulate"]
+__all__ = [
+    "bench_fk",
+    "bench_pipeline",
+    "bench_real",
+    "bench_refine",
+    "bench_retarget",
+    "bench_simulate",
+]
 
 
 def _rate(fn: Callable[[], object], frames: int, repeats: int) -> float:
@@ -434,3 +442,131 @@ def _bench_table(runs: list[dict], sequences: int, objects: int) -> list[str]:
         f"{per_object:.0f} s per object = **{estimate / 3600:.1f} h**.",
     ]
     return lines
+
+
+REAL_COLUMNS = (
+    ("fingertip_error_mm", "fingertip error mm", "{:.1f}"),
+    ("rms_acc", "RMS acc rad/s²", "{:.2f}"),
+    ("pd_mm", "PD mean mm", "{:.2f}"),
+    ("pd_max_mm", "PD max mm", "{:.1f}"),
+    ("cd_mm", "CD mm", "{:.2f}"),
+    ("ssr", "SSR %", "{:.1f}"),
+    ("ssr_bench", "SSR bench %", "{:.1f}"),
+)
+
+
+def _subset_root(root: Path, count: int, folder: Path) -> Path:
+    """``root`` itself, or a root in ``folder`` linking ``count`` evenly spaced sequences of it."""
+    files = sorted((root / "sequences").glob("*.npz"))
+    if count <= 0 or count >= len(files):
+        return root
+    chosen = [files[int(i)] for i in np.linspace(0, len(files) - 1, count).round()]
+    (folder / "sequences").mkdir(parents=True, exist_ok=True)
+    for path in chosen:
+        (folder / "sequences" / path.name).symlink_to(path.resolve())
+    for entry in root.iterdir():
+        if entry.name != "sequences":
+            (folder / entry.name).symlink_to(entry.resolve())
+    return folder
+
+
+def bench_real(
+    root: str,
+    hands: list[str] | None = None,
+    workers: int = 2,
+    sequences: int = 0,
+    work: str | None = None,
+    out: str | None = "reports/real.md",
+) -> dict[str, dict]:
+    """The whole pipeline (no demo stage) on a converted dataset, per hand, with its metrics.
+
+    ``root`` holds canonical sequences (``dexflow convert``). For every hand the stages run in
+    ``work/<hand>`` (a temporary directory by default) with the project's ``params.yaml``
+    defaults, and the metrics stage's aggregates are tabulated per method: the numbers of the
+    README's "Real data" section. ``sequences > 0`` takes that many evenly spaced sequences.
+
+    Returns:
+        Per hand: ``metrics`` (the metrics stage's aggregates), ``seconds`` per stage,
+        ``sequences``, ``frames`` and ``retarget_s_per_sequence`` (CPU seconds of retarget@dexflow
+        per sequence: wall-clock time x workers / sequences).
+    """
+    import dataclasses
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from dexflow.config import compose_params, load_params
+
+    source = Path(root)
+    if not (source / "sequences").is_dir():
+        raise FileNotFoundError(f"{source}: no sequences/ folder (convert a dataset first)")
+    base = Path(work) if work else Path(tempfile.mkdtemp(prefix="dexflow-real-"))
+    data_root = _subset_root(source, sequences, base / "subset")
+    results: dict[str, dict] = {}
+    for hand in hands or ["shadow", "allegro"]:
+        folder = base / hand
+        folder.mkdir(parents=True, exist_ok=True)
+        run = "sequential" if workers <= 1 else "local"
+        overrides = [f"hand={hand}", "data=custom", f"data.root={data_root}", f"run={run}"]
+        params = load_params(compose_params(overrides, output=folder / "params.yaml"))
+        params = dataclasses.replace(params, run=dataclasses.replace(params.run, n_jobs=workers))
+        d = {k: folder / k for k in ("aligned", "dexflow", "position", "contact", "refine",
+                                     "simulate", "metrics", "plots")}  # fmt: skip
+        d["demo"] = data_root
+        seconds, summary, frames = {}, {}, 0
+        for name, fn in _pipeline_stages(params, d):
+            if name == "demo":
+                continue
+            start = time.perf_counter()
+            summary = fn()
+            seconds[name] = time.perf_counter() - start
+            if name == "retarget@dexflow":
+                frames, count = int(summary["num_frames"]), int(summary["num_sequences"])
+        results[hand] = {
+            "metrics": {k: v for k, v in summary.items() if k != "sequences"},
+            "seconds": seconds,
+            "sequences": count,
+            "frames": frames,
+            "retarget_s_per_sequence": seconds["retarget@dexflow"] * workers / max(count, 1),
+        }
+    if not work:
+        shutil.rmtree(base, ignore_errors=True)
+    text = _real_table(results, source, sequences, workers)
+    print(text)
+    if out:
+        from dexflow.io.atomic import atomic_path
+
+        with atomic_path(Path(out)) as tmp:
+            tmp.write_text(text)
+    return results
+
+
+def _real_table(results: dict[str, dict], source, sequences: int, workers: int) -> str:
+    command = f"dexflow bench real {source}" + (f" --sequences {sequences}" if sequences else "")
+    lines = [
+        "# dexflow on real captures",
+        "",
+        f"`{command}`: the pipeline at the project's defaults, per hand; metrics as defined in "
+        "`dexflow/metrics.py` (observed frames only for the errors).",
+        "",
+        "| hand | method | " + " | ".join(label for _, label, _ in REAL_COLUMNS) + " |",
+        "|---" * (len(REAL_COLUMNS) + 2) + "|",
+    ]
+    names = {"baseline": "position baseline", "retarget": "DexFlow retarget",
+             "refine": "DexFlow + refine"}  # fmt: skip
+    for hand, r in results.items():
+        for method, label in names.items():
+            cells = []
+            for key, _, fmt in REAL_COLUMNS:
+                value = r["metrics"].get(f"{method}.{key}", float("nan"))
+                cells.append("—" if value is None or not np.isfinite(value) else fmt.format(value))
+            lines.append(f"| {hand} | {label} | " + " | ".join(cells) + " |")
+    lines += [""]
+    for hand, r in results.items():
+        total = sum(r["seconds"].values())
+        lines.append(
+            f"- {hand}: {r['sequences']} sequences, {r['frames']} frames; retarget "
+            f"{r['retarget_s_per_sequence']:.1f} CPU s per sequence; whole pipeline {total:.0f} s "
+            f"with {workers} worker(s) ({r['frames'] / total:.1f} frames/s)."
+        )
+    return "\n".join(lines) + "\n"

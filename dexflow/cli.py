@@ -8,7 +8,7 @@ Subcommands:
                                     dexycb | ho3d | grab | generic -> canonical sequences
   hand check NAME|YAML [--png P]    validate a hand, print its kinematic tree, draw its zero pose
   hand export NAME|YAML OUT.urdf    write an MJCF hand as a URDF (for pybullet)
-  bench fk|retarget|refine|simulate|pipeline
+  bench fk|retarget|refine|simulate|pipeline|real
                                     throughput benchmarks (frames/s against baselines)
   view SEQUENCE [--trajectory T] [--open]
                                     write a rerun recording (.rrd) of a sequence
@@ -139,12 +139,17 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from dexflow.bench import (
         bench_fk,
         bench_pipeline,
+        bench_real,
         bench_refine,
         bench_retarget,
         bench_simulate,
     )
 
-    if args.what == "pipeline":
+    if args.what == "real":
+        if not args.root:
+            raise SystemExit("dexflow bench real ROOT: give the converted dataset's root")
+        bench_real(args.root, args.hands or None, args.jobs, args.subset, args.work, args.out_real)
+    elif args.what == "pipeline":
         workers = tuple(int(w) for w in args.workers.split(","))
         bench_pipeline(args.sequences, workers, args.out)
     elif args.what == "fk":
@@ -276,12 +281,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_hand_export)
 
     p = sub.add_parser("bench", help="benchmarks (print frames/s)")
-    p.add_argument("what", choices=["fk", "retarget", "refine", "simulate", "pipeline"])
+    p.add_argument("what", choices=["fk", "retarget", "refine", "simulate", "pipeline", "real"])
+    p.add_argument("root", nargs="?", help="real: root of converted sequences (dexflow convert)")
     p.add_argument("--workers", default="1,2", help="pipeline: worker counts, e.g. 1,2")
     p.add_argument("--out", default="reports/bench.md", help="pipeline: report file")
     p.add_argument("--hands", nargs="*")
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--sequences", type=int, default=6, help="retarget: demo sequences to use")
+    p.add_argument("--subset", type=int, default=0, help="real: evenly spaced sequences (0: all)")
+    p.add_argument("--jobs", type=int, default=2, help="real: worker processes")
+    p.add_argument("--work", help="real: keep the stage outputs here (default: a temp dir)")
+    p.add_argument("--out-real", default="reports/real.md", help="real: report file")
     p.set_defaults(func=_cmd_bench)
 
     p = sub.add_parser("report", help="generate reports/summary.md or reports/ablation.md")
