@@ -277,7 +277,9 @@ def load_params(path: str | Path = "params.yaml") -> PipelineParams:
     r = params.refine
     unknown = sorted(set(r.finger_order) - {"thumb", "index", "middle", "ring", "little"})
     _require(not unknown, "refine.finger_order", "finger names thumb..little", unknown)
-    for key in ("w_dis", "w_pen", "w_align", "w_spen", "w_joints", "w_smooth", "learning_rate"):
+    for key in ("w_dis", "w_pen", "w_align", "w_spen", "w_joints", "w_smooth", "learning_rate",
+                "release_w_pen", "release_w_touch", "release_w_track", "release_w_smooth",
+                "release_w_smooth_joints", "release_iterations"):  # fmt: skip
         _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
     _validate_simulate(params.simulate)
     m = params.metrics

@@ -20,6 +20,24 @@ followers follow their leaders) and a finger without contact in a frame is left 
 
 The change made by refinement is finally smoothed over time (Gaussian, ``blend_frames``) so that
 it ramps in and out around contacts instead of stepping between refined and untouched frames.
+
+**Whole-hand release** (``release: true``; dexflow's addition to the paper). On real captures the
+human hand sits a few millimetres inside the scanned object while holding it (annotation and
+object-pose error), the palm and the proximal links included. Moving only the contact fingers
+cannot free a palm that is inside the object: the fingers are bent away from the motion and the
+palm stays in. So, before the per-finger step and again after the blending, every degree of
+freedom (floating base and all joints) of every frame is optimised jointly:
+
+    E_rel = w_pen Σ_t Σ_p max(0, m - sd(p))²                 (every hand surface point)
+          + w_touch Σ_t Σ_{f in contact} max(0, min_{p∈f} sd(p))²   (contact fingers keep touching)
+          + w_track Σ_t Σ_k ||v^k(q_t) - v^k(q_t^0)||²        (keypoints stay where they were)
+          + w_smooth Σ_t ||Δ̈v_t||² + w_smooth_joints Σ_t ||Δ̈θ_t||²   (no added jitter)
+
+with ``Δv = v(q) - v(q^0)`` the change of the keypoints, ``Δθ`` that of the hand joints and
+``Δ̈`` second differences over frames. The hand backs out of the object as a whole, the
+fingers flex back onto it, and the change varies smoothly over time. It is solved by L-BFGS
+over all frames at once (``release_iterations``).
+
 Joint limits hold exactly (projection after every step and after blending). Metres.
 """
 
@@ -41,6 +59,7 @@ __all__ = [
     "energy_terms",
     "hand_object_measures",
     "refine_trajectory",
+    "release_hand",
     "run_refine",
 ]
 
@@ -65,6 +84,13 @@ class RefineParams:
     learning_rate: float = 0.03
     blend_frames: float = 3.0
     refine_base: bool = False
+    release: bool = True
+    release_w_pen: float = 300.0
+    release_w_touch: float = 100.0
+    release_w_track: float = 30.0
+    release_w_smooth: float = 300.0
+    release_w_smooth_joints: float = 30.0
+    release_iterations: int = 60
 
 
 class TorchSDF:
@@ -150,7 +176,10 @@ def refine_trajectory(
     """
     fingers = list(hand.spec.fingers)
     inv = torch.as_tensor(np.linalg.inv(obj_pose), dtype=hand.dtype)
-    q = torch.as_tensor(q_init, dtype=hand.dtype).clone()
+    q_start = q_init
+    if params.release:
+        q_start = release_hand(hand, q_init, inv, sdf, contact, params)
+    q = torch.as_tensor(q_start, dtype=hand.dtype).clone()
     rng = np.random.default_rng(0)
     energy_before = np.zeros(len(q))
     energy_after = np.zeros(len(q))
@@ -162,8 +191,83 @@ def refine_trajectory(
             )
     q = q.numpy()
     if params.blend_frames > 0:
-        q = _blend(hand, q_init, q, params.blend_frames)
+        q = _blend(hand, q_start, q, params.blend_frames)
+    if params.release:
+        q = release_hand(hand, q, inv, sdf, contact, params, reference=q_init)
     return q, energy_before, energy_after
+
+
+def release_hand(
+    hand: RobotHand,
+    q_init: np.ndarray,
+    world_to_obj: torch.Tensor,
+    sdf: TorchSDF,
+    contact: np.ndarray,
+    params: RefineParams,
+    reference: np.ndarray | None = None,
+) -> np.ndarray:
+    """Free the whole hand from the object (``E_rel`` of the module docstring).
+
+    Args:
+        q_init: (T, dof) trajectory to start from.
+        world_to_obj: (T, 4, 4) inverse object poses.
+        contact: (T, F) contact states (fingers in the hand config's order).
+        reference: (T, dof) trajectory whose keypoints and joints the change is measured
+            against (default ``q_init``).
+
+    Returns:
+        (T, dof) released trajectory within the joint limits, tendon ties exact.
+    """
+    coupled = set(hand._coupled.tolist())
+    free = torch.as_tensor([j for j in range(hand.dof) if j not in coupled])
+    q0 = torch.as_tensor(q_init, dtype=hand.dtype)
+    ref = q0 if reference is None else torch.as_tensor(reference, dtype=hand.dtype)
+    with torch.no_grad():
+        kp_ref = hand.keypoints(ref)
+    masks = torch.as_tensor(np.stack(list(hand.finger_point_masks.values())))  # (F, N)
+    touching = torch.as_tensor(np.asarray(contact, dtype=bool))  # (T, F)
+    lo, hi = hand.lower[free], hand.upper[free]
+    delta = torch.zeros(len(q0), len(free), dtype=hand.dtype, requires_grad=True)
+    margin = params.pen_margin_m
+
+    def energy() -> torch.Tensor:
+        q = q0.clone()
+        q[:, free] = torch.maximum(torch.minimum(q0[:, free] + delta, hi), lo)
+        q = hand.apply_couplings(q)
+        transforms = hand.frame_transforms(q)
+        points, _ = hand.surface(q, transforms)
+        sd = sdf(_to_object(points, world_to_obj))  # (T, N)
+        total = params.release_w_pen * (torch.relu(margin - sd) ** 2).sum()
+        if touching.any():
+            per_finger = torch.where(masks[None], sd[:, None], torch.inf).amin(-1)  # (T, F)
+            gap = torch.relu(per_finger[touching])
+            total = total + params.release_w_touch * (gap**2).sum()
+        change = hand.keypoints(q, transforms) - kp_ref
+        total = total + params.release_w_track * (change**2).sum()
+        if len(q) > 2:
+            acc = change[2:] - 2 * change[1:-1] + change[:-2]
+            total = total + params.release_w_smooth * (acc**2).sum()
+            joints = q[:, 6:] - ref[:, 6:]
+            acc_j = joints[2:] - 2 * joints[1:-1] + joints[:-2]
+            total = total + params.release_w_smooth_joints * (acc_j**2).sum()
+        return total
+
+    optimizer = torch.optim.LBFGS(
+        [delta], max_iter=params.release_iterations, line_search_fn="strong_wolfe",
+        tolerance_grad=1e-10, tolerance_change=1e-14, history_size=20,
+    )  # fmt: skip
+
+    def closure() -> torch.Tensor:
+        optimizer.zero_grad()
+        e = energy()
+        e.backward()
+        return e
+
+    optimizer.step(closure)
+    with torch.no_grad():
+        q = q0.clone()
+        q[:, free] = q0[:, free] + delta
+        return hand.clamp(hand.apply_couplings(q)).numpy()
 
 
 def energy_terms(

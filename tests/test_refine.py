@@ -42,7 +42,7 @@ def _index_distance(hand, q, pose, grid):
     return per_finger[:, list(hand.spec.fingers).index("index")]
 
 
-def _refine(hand, q, pose, box, grid, contact, pen_margin_m=0.001):
+def _refine(hand, q, pose, box, grid, contact, pen_margin_m=0.001, release=False):
     _, dist, local = finger_distances(hand, q, pose, grid)
     points, faces = trimesh.sample.sample_surface(box, 4000, seed=0)
     cmap = _contact_map(
@@ -54,7 +54,9 @@ def _refine(hand, q, pose, box, grid, contact, pen_margin_m=0.001):
         box.face_normals[faces],
         8,
     )
-    params = RefineParams(blend_frames=0.0, iterations=80, pen_margin_m=pen_margin_m)
+    params = RefineParams(
+        blend_frames=0.0, iterations=80, pen_margin_m=pen_margin_m, release=release
+    )
     q1, e0, e1 = refine_trajectory(hand, q, pose, TorchSDF(grid), contact, cmap, params)
     return q1, e0, e1
 
@@ -149,3 +151,60 @@ def test_energy_gradients_match_finite_differences(allegro):
                 fd[i, j] = (terms(theta + d)[name].sum() - terms(theta - d)[name].sum()) / (2 * eps)
         torch.testing.assert_close(grad, fd, atol=1e-5, rtol=1e-3, msg=name)
     assert fingers.index("index") == 1
+
+
+def _palm_scene(hand, depth_m: float, frames: int = 6):
+    """A slab in front of the little-finger half of the Allegro palm (its +x face), ``depth_m``
+    into the palm's surface, drifting 1 mm per frame along the palm; the fingers and the thumb
+    at zero stay clear of it."""
+    q = hand.zero(frames).numpy()
+    points, _ = hand.surface(torch.as_tensor(q[:1]))
+    palm = np.asarray(hand.surface_point_links) == "base_link"
+    front = points[0, torch.as_tensor(palm), 0].max().item()
+    slab = trimesh.creation.box(extents=(0.04, 0.05, 0.09))
+    grid = SignedDistanceGrid.from_mesh(slab, spacing=0.002)
+    pose = np.repeat(np.eye(4)[None], frames, axis=0)
+    pose[:, 0, 3] = front - depth_m + 0.02
+    pose[:, 1, 3] = -0.03 + 0.001 * np.arange(frames)
+    pose[:, 2, 3] = -0.05
+    return q, pose, grid
+
+
+def _depth(hand, q, pose, grid):
+    points, _ = hand.surface(torch.as_tensor(q))
+    inv = np.linalg.inv(pose)
+    local = np.einsum("tij,tnj->tni", inv[:, :3, :3], points.numpy()) + inv[:, None, :3, 3]
+    return np.clip(-grid.query(local).min(axis=1), 0, None)
+
+
+def test_release_frees_a_palm_inside_the_object(allegro):
+    """The paper's per-finger step cannot move a palm out of the object; the release does, by
+    backing the whole hand out by about as much as it was in (tilting it where that moves the
+    keypoints less), the same way in every frame."""
+    q, pose, grid = _palm_scene(allegro, 0.006)
+    assert np.all(_depth(allegro, q, pose, grid) > 0.005)
+    contact = np.zeros((len(q), 4), dtype=bool)  # no finger in contact: the paper moves nothing
+    paper = RefineParams(release=False)
+    q_paper, _, _ = refine_trajectory(allegro, q, pose, TorchSDF(grid), contact, {}, paper)
+    assert np.all(_depth(allegro, q_paper, pose, grid) > 0.005)
+
+    q1, _, _ = refine_trajectory(allegro, q, pose, TorchSDF(grid), contact, {}, RefineParams())
+    assert np.all(_depth(allegro, q1, pose, grid) < 0.0005)
+    with torch.no_grad():
+        moved = torch.linalg.norm(
+            allegro.keypoints(torch.as_tensor(q1)) - allegro.keypoints(torch.as_tensor(q)), dim=-1
+        ).numpy()
+    assert 0.003 < moved.mean() < 0.007 and moved.max() < 0.011, moved  # about the depth
+    assert np.ptp(moved.mean(axis=1)) < 0.001  # the same change in every frame: no jitter
+    lo, hi = allegro.lower.numpy(), allegro.upper.numpy()
+    assert np.all(q1 >= lo - 1e-12) and np.all(q1 <= hi + 1e-12)
+
+
+def test_release_keeps_a_contact_finger_on_the_surface(allegro):
+    q, pose, box, grid = _scene(allegro, -0.005)
+    contact = np.zeros((FRAMES, 4), dtype=bool)
+    contact[:, list(allegro.spec.fingers).index("index")] = True
+    q1, _, _ = _refine(allegro, q, pose, box, grid, contact, release=True)
+    after = _index_distance(allegro, q1, pose, grid)
+    assert np.all(after > -0.0005) and np.all(after < 0.0015), after
+    assert np.all(_depth(allegro, q1, pose, grid) < 0.0005)
