@@ -493,7 +493,6 @@ def bench_real(
     import dataclasses
     import shutil
     import tempfile
-    from pathlib import Path
 
     from dexflow.config import compose_params, load_params
 
@@ -542,7 +541,7 @@ def bench_real(
 
 
 def _real_table(results: dict[str, dict], source, sequences: int, workers: int) -> str:
-    command = f"dexflow bench real {source}" + (f" --sequences {sequences}" if sequences else "")
+    command = f"dexflow bench real {source}" + (f" --subset {sequences}" if sequences else "")
     lines = [
         "# dexflow on real captures",
         "",
