@@ -49,3 +49,15 @@ def test_table_has_one_row_per_hand_and_method_and_marks_missing_values():
         and "100 frames" in text
         and "10.0 frames/s" in text
     )
+
+
+def test_table_names_the_subset_flag_it_was_made_with():
+    result = {
+        "metrics": {},
+        "seconds": {"retarget@dexflow": 1.0},
+        "sequences": 1,
+        "frames": 10,
+        "retarget_s_per_sequence": 1.0,
+    }
+    text = _real_table({"shadow": result}, "data/real", 5, 2)
+    assert "`dexflow bench real data/real --subset 5`" in text
