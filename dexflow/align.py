@@ -27,17 +27,26 @@ from pathlib import Path
 
 import numpy as np
 
-from dexflow.config import PipelineParams
 from dexflow.human.keypoints import FINGER_KEYPOINTS
 from dexflow.io.atomic import save_json, save_npz
+from dexflow.io.layout import Layout, ObjectPaths, StageDir
 from dexflow.io.sequence import Sequence, load_sequence, save_sequence
 from dexflow.objects.convex import convex_decomposition, write_convex_obj
 from dexflow.objects.mesh import load_mesh, write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.objects.surface import sample_surface
+from dexflow.params import PipelineParams
 from dexflow.resume import StageOutput
+from dexflow.runner import StageSpec
 
-__all__ = ["ObjectJob", "align_sequence", "prepare_object", "run_scale_align", "scale_sequence"]
+__all__ = [
+    "STAGE",
+    "ObjectJob",
+    "align_sequence",
+    "prepare_object",
+    "run_scale_align",
+    "scale_sequence",
+]
 
 log = logging.getLogger(__name__)
 
@@ -84,18 +93,17 @@ class ObjectJob:
     key: str
 
 
-def prepare_object(job: ObjectJob, in_root: Path, out_root: Path, params: PipelineParams) -> dict:
-    """Scale one object mesh and write its precomputation to ``out_root/objects/<key>/``."""
+def prepare_object(job: ObjectJob, in_root: Path, out: ObjectPaths, params: PipelineParams) -> dict:
+    """Scale one object mesh and write its precomputation to ``out`` (``objects/<key>/``)."""
     cfg = params.scale_align
     scale = params.hand.scale
     mesh = load_mesh(in_root / job.mesh_rel)
     mesh.apply_scale(scale)
-    out = out_root / "objects" / job.key
-    write_obj(out / "mesh.obj", mesh)
+    write_obj(out.mesh, mesh)
     sdf = SignedDistanceGrid.from_mesh(mesh, spacing=cfg.sdf_spacing_m, padding=cfg.sdf_padding_m)
-    sdf.save(out / "sdf.npz")
+    sdf.save(out.sdf)
     points, normals = sample_surface(mesh, cfg.surface_samples, sdf, seed=params.seed)
-    save_npz(out / "surface.npz", {"points": points, "normals": normals})
+    save_npz(out.surface, {"points": points, "normals": normals})
     c = cfg.convex
     parts = convex_decomposition(
         mesh,
@@ -107,7 +115,7 @@ def prepare_object(job: ObjectJob, in_root: Path, out_root: Path, params: Pipeli
         mcts_nodes=c.mcts_nodes,
         seed=params.seed,
     )
-    write_convex_obj(out / "convex.obj", parts)
+    write_convex_obj(out.convex, parts)
     meta = {
         "source_mesh": job.mesh_rel,
         "scale": scale,
@@ -118,18 +126,19 @@ def prepare_object(job: ObjectJob, in_root: Path, out_root: Path, params: Pipeli
         "sdf_shape": list(sdf.values.shape),
         "sdf_spacing_m": sdf.spacing,
     }
-    save_json(out / "meta.json", meta)
+    save_json(out.meta, meta)
     return meta
 
 
 def align_sequence(
-    path: Path, in_root: Path, out_root: Path, params: PipelineParams, key: str
+    path: Path, in_root: Path, out: StageDir, params: PipelineParams, key: str
 ) -> dict:
-    """Scale one sequence file and write it below ``out_root/sequences``."""
+    """Scale one sequence file and write it to ``out`` (stage scale_align's directory)."""
     seq = load_sequence(path, data_root=in_root)
     aligned = scale_sequence(seq, params.hand.scale, params.hand.fingertip_offsets)
-    aligned = replace(aligned, obj_mesh=f"objects/{key}/mesh.obj")
-    save_sequence(out_root / "sequences" / path.name, aligned, data_root=out_root)
+    mesh = out.object(key).mesh.relative_to(out.root).as_posix()
+    aligned = replace(aligned, obj_mesh=mesh)
+    save_sequence(out.sequence(path), aligned, data_root=out.root)
     return {"frames": aligned.num_frames, "object": key}
 
 
@@ -139,15 +148,16 @@ def _mesh_of(path: Path) -> str:
         return str(data["obj_mesh"])
 
 
-def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str | Path) -> dict:
-    """Run the stage over every ``in_root/sequences/*.npz``; never stops at one bad file.
+def run_scale_align(params: PipelineParams, layout: Layout) -> dict:
+    """Run the stage over every sequence of ``layout.data``; never stops at one bad file.
 
     Returns:
-        The summary, also written to ``out_root/summary.json``.
+        The summary, also written to ``layout.scale_align.summary``.
     """
-    in_root, out_root = Path(in_root), Path(out_root)
+    source, out = layout.data, layout.scale_align
+    in_root = source.root
     stage = StageOutput(
-        out_root,
+        out,
         "scale_align",
         {
             "seed": params.seed,
@@ -155,7 +165,7 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
             "hand.fingertip_offsets": params.hand.fingertip_offsets,
             "scale_align": params.scale_align,
         },
-        inputs=(in_root,),
+        inputs=(source,),
     )
     files = stage.start()
 
@@ -168,7 +178,7 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
             errors[path.stem] = f"cannot read obj_mesh ({type(exc).__name__}: {exc})"
     jobs = sorted({ObjectJob(m, _object_key(m)) for m in mesh_of.values()}, key=lambda j: j.key)
     object_results = stage.map(
-        lambda job: prepare_object(job, in_root, out_root, params),
+        lambda job: prepare_object(job, in_root, out.object(job.key), params),
         jobs,
         params.run,
         "objects",
@@ -182,7 +192,7 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
         obj = objects[_object_key(mesh_of[path.stem])]
         if not obj.ok:
             raise RuntimeError(f"object {obj.item.mesh_rel} failed: {obj.error}")
-        return align_sequence(path, in_root, out_root, params, obj.item.key)
+        return align_sequence(path, in_root, out, params, obj.item.key)
 
     todo = [p for p in files if p.stem not in errors]
     seq_results = stage.map(run_one, todo, params.run, "sequences")
@@ -197,8 +207,20 @@ def run_scale_align(params: PipelineParams, in_root: str | Path, out_root: str |
         "num_ok": sum(s["status"] == "ok" for s in sequences.values()),
         "num_failed": sum(s["status"] != "ok" for s in sequences.values()),
         "num_frames": int(sum(s.get("frames", 0) for s in sequences.values())),
+        "num_objects": len(objects),
         "sequences": dict(sorted(sequences.items())),
         "objects": {k: r.entry() for k, r in sorted(objects.items())},
     }
     stage.finish(summary)
     return summary
+
+
+STAGE = StageSpec(
+    name="scale_align",
+    run=run_scale_align,
+    metric_keys=("num_sequences", "num_ok", "num_failed", "num_frames", "num_objects"),
+    describe=lambda s: (
+        f"{s['num_ok']}/{s['num_sequences']} sequences ok, {s['num_frames']} frames, "
+        f"{s['num_objects']} objects"
+    ),
+)

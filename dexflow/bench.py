@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dexflow.io.layout import Layout, StageDir
+
 __all__ = [
     "bench_fk",
     "bench_pipeline",
@@ -127,15 +129,13 @@ def bench_retarget(
     from dexflow.retarget import retarget_sequence
 
     torch.set_num_threads(1)
-    files = sorted(Path(data_root).glob("sequences/*.npz"))
-    if not files:
-        raise FileNotFoundError(f"{data_root}: no sequences; run `dvc repro scale_align` first")
+    files = StageDir(Path(data_root)).sequence_files()
     files = files[:: max(1, len(files) // sequences)][:sequences]
     seqs = [load_sequence(f) for f in files]
     hand = load_hand(hand_name)
     params = load_params("params.yaml").retarget if Path("params.yaml").is_file() else None
     if params is None:
-        from dexflow.retarget import RetargetParams
+        from dexflow.params import RetargetParams
 
         params = RetargetParams()
     off = replace(params, global_search=replace(params.global_search, mode="off"))
@@ -196,23 +196,27 @@ def bench_retarget(
     return rows
 
 
-def _refined_sequences(count: int) -> list[tuple]:
-    """``count`` refined demo sequences spread over ``data/refine`` (needs ``dvc repro``): per
-    sequence its refined file, the aligned sequence, its object directory and contact arrays."""
-    from pathlib import Path
-
+def _refined_sequences(count: int, hand) -> list[tuple]:
+    """``count`` refined demo sequences spread over the project's refine stage (needs
+    ``dvc repro``): per sequence its retargeted and refined ``q``, the aligned sequence, its
+    object's assets and contact result."""
+    from dexflow.io.artifacts import ObjectAssets, read_contact, read_trajectory
     from dexflow.io.sequence import load_sequence
 
-    files = sorted(Path("data/refine/sequences").glob("*.npz"))
-    if not files:
-        raise FileNotFoundError("data/refine: no sequences; run `dvc repro` first")
+    layout = Layout()
+    names = layout.refine.names()
+    if not names:
+        raise FileNotFoundError(f"{layout.refine.root}: no sequences; run `dvc repro` first")
     out = []
-    for path in files[:: max(1, len(files) // count)][:count]:
-        aligned = Path("data/scale_align")
-        seq = load_sequence(aligned / "sequences" / path.name, data_root=aligned)
-        with np.load(Path("data/contact/sequences") / path.name) as data:
-            contact = {k: data[k] for k in data.files}
-        out.append((path, seq, (aligned / seq.obj_mesh).parent, contact))
+    for name in names[:: max(1, len(names) // count)][:count]:
+        aligned = layout.scale_align
+        seq = load_sequence(aligned.sequence(name), data_root=aligned.root)
+        frames = seq.num_frames
+        q_retarget = read_trajectory(layout.retarget("dexflow").sequence(name), hand.joint_names)
+        q_refine = read_trajectory(layout.refine.sequence(name), hand.joint_names, frames)
+        found = read_contact(layout.contact.sequence(name), list(hand.spec.fingers), frames)
+        assets = ObjectAssets(aligned.object_of(seq.obj_mesh))
+        out.append((q_retarget.q, q_refine.q, seq, assets, found))
     return out
 
 
@@ -221,22 +225,17 @@ def bench_refine(
 ) -> list[dict]:
     """Refinement throughput on demo sequences, one core: batched over frames (the stage) against
     the same frames refined one frame at a time, measured in the same run. Needs `dvc repro`."""
-    from pathlib import Path
-
     from dexflow.config import load_params
     from dexflow.hands.robot import load_hand
-    from dexflow.objects.sdf import SignedDistanceGrid
     from dexflow.refine import TorchSDF, refine_trajectory
 
     torch.set_num_threads(1)
     params = load_params("params.yaml").refine
     hand = load_hand(hand_name)
     jobs = []
-    for path, seq, object_dir, contact_data in _refined_sequences(sequences):
-        q0 = np.load(Path("data/retarget/dexflow/sequences") / path.name)["q"]
-        cmap = {k: v for k, v in contact_data.items() if k.startswith("map_")}
-        sdf = TorchSDF(SignedDistanceGrid.load(object_dir / "sdf.npz"))
-        jobs.append((q0, seq.obj_pose, sdf, contact_data["final"], cmap))
+    for q0, _, seq, assets, found in _refined_sequences(sequences, hand):
+        sdf = TorchSDF(assets.sdf())
+        jobs.append((q0, seq.obj_pose, sdf, found.final, found.contact_map))
 
     start = time.perf_counter()
     for q0, pose, sdf, contact, cmap in jobs:
@@ -275,10 +274,10 @@ def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 
     params = load_params("params.yaml").simulate
     hand = load_hand(hand_name)
     jobs = []
-    for path, seq, object_dir, contact_data in _refined_sequences(sequences):
-        contact = np.flatnonzero(contact_data["final"].any(axis=1))
+    for _, q, seq, assets, found in _refined_sequences(sequences, hand):
+        contact = np.flatnonzero(found.final.any(axis=1))
         picked = np.linspace(contact[0], contact[-1], frames).round().astype(int)
-        jobs.append((object_dir / "convex.obj", np.load(path)["q"], seq, picked))
+        jobs.append((assets.paths.convex, q, seq, picked))
 
     def run(p) -> tuple[float, int]:
         world = GraspWorld(hand, hand_urdf(hand), p)
@@ -329,11 +328,9 @@ def bench_pipeline(
     for n in workers:
         root = Path(tempfile.mkdtemp(prefix=f"dexflow-bench-{n}-"))
         run = dataclasses.replace(base.run, backend="sequential" if n == 1 else "local", n_jobs=n)
-        params = dataclasses.replace(base, demo=demo, run=run)
-        d = {k: root / k for k in ("demo", "aligned", "dexflow", "position", "contact", "refine",
-                                   "simulate", "metrics", "plots")}  # fmt: skip
-        data = dataclasses.replace(params.data, root=str(d["demo"]))
-        stages = _pipeline_stages(dataclasses.replace(params, data=data), d)
+        data = dataclasses.replace(base.data, root="data/demo")
+        params = dataclasses.replace(base, demo=demo, run=run, data=data)
+        stages = _pipeline_stages(params, Layout.of(data.root, root=root))
         seconds, frames, evaluated = {}, 0, 0
         for name, fn in stages:
             start = time.perf_counter()
@@ -359,37 +356,25 @@ def bench_pipeline(
     return runs
 
 
-def _pipeline_stages(params, d: dict) -> list[tuple[str, Callable[[], dict]]]:
-    """Every stage of the pipeline as (name, call) on the directories ``d``."""
-    from dexflow.align import run_scale_align
-    from dexflow.contact import run_contact
+def _pipeline_stages(params, layout) -> list[tuple[str, Callable[[], dict]]]:
+    """Every stage of ``dvc.yaml`` as (name, call) on the project ``layout``, in its order:
+    the stage specs the stage scripts run, with the same arguments (``foreach`` items)."""
+    from dexflow import align, contact, metrics, refine, retarget, simulate
     from dexflow.data.demo import generate_demo
-    from dexflow.metrics import run_metrics
-    from dexflow.refine import run_refine
-    from dexflow.retarget import run_retarget
-    from dexflow.simulate import run_simulate
+    from dexflow.io.layout import TRAJECTORIES
+    from dexflow.runner import run_stage
 
-    p = params
-    roots = {"scale_align": d["aligned"], "contact": d["contact"], "baseline": d["position"],
-             "retarget": d["dexflow"], "refine": d["refine"], "simulate": d["simulate"]}  # fmt: skip
+    steps = [(align.STAGE, ())]
+    steps += [(retarget.STAGE, (method,)) for method in ("dexflow", "position")]
+    steps += [(contact.STAGE, ()), (refine.STAGE, ())]
+    steps += [(simulate.STAGE, (label,)) for label in TRAJECTORIES]
+    steps += [(metrics.STAGE, ())]
 
-    def simulate(label: str, trajectories: str) -> Callable[[], dict]:
-        return lambda: run_simulate(
-            p, label, d[trajectories], d["contact"], d["aligned"], d["simulate"] / label
-        )
+    def call(spec, args) -> Callable[[], dict]:
+        return lambda: run_stage(spec, params, layout, args)
 
-    return [
-        ("demo", lambda: generate_demo(p.demo, d["demo"], p.run)),
-        ("scale_align", lambda: run_scale_align(p, d["demo"], d["aligned"])),
-        ("retarget@dexflow", lambda: run_retarget(p, "dexflow", d["aligned"], d["dexflow"])),
-        ("retarget@position", lambda: run_retarget(p, "position", d["aligned"], d["position"])),
-        ("contact", lambda: run_contact(p, d["dexflow"], d["aligned"], d["contact"])),
-        ("refine", lambda: run_refine(p, d["dexflow"], d["contact"], d["aligned"], d["refine"])),
-        ("simulate@baseline", simulate("baseline", "position")),
-        ("simulate@retarget", simulate("retarget", "dexflow")),
-        ("simulate@refine", simulate("refine", "refine")),
-        ("metrics", lambda: run_metrics(p, roots, d["metrics"], d["plots"])),
-    ]
+    demo = ("demo", lambda: generate_demo(params.demo, layout.data.root, params.run))
+    return [demo] + [("@".join([spec.name, *args]), call(spec, args)) for spec, args in steps]
 
 
 def _bench_table(runs: list[dict], sequences: int, objects: int) -> list[str]:
@@ -457,15 +442,16 @@ REAL_COLUMNS = (
 
 def _subset_root(root: Path, count: int, folder: Path) -> Path:
     """``root`` itself, or a root in ``folder`` linking ``count`` evenly spaced sequences of it."""
-    files = sorted((root / "sequences").glob("*.npz"))
+    source, subset = StageDir(root), StageDir(folder)
+    files = source.sequence_files()
     if count <= 0 or count >= len(files):
         return root
     chosen = [files[int(i)] for i in np.linspace(0, len(files) - 1, count).round()]
-    (folder / "sequences").mkdir(parents=True, exist_ok=True)
+    subset.sequences_dir.mkdir(parents=True, exist_ok=True)
     for path in chosen:
-        (folder / "sequences" / path.name).symlink_to(path.resolve())
+        subset.sequence(path).symlink_to(path.resolve())
     for entry in root.iterdir():
-        if entry.name != "sequences":
+        if entry != source.sequences_dir:
             (folder / entry.name).symlink_to(entry.resolve())
     return folder
 
@@ -497,7 +483,7 @@ def bench_real(
     from dexflow.config import compose_params, load_params
 
     source = Path(root)
-    if not (source / "sequences").is_dir():
+    if not StageDir(source).sequences_dir.is_dir():
         raise FileNotFoundError(f"{source}: no sequences/ folder (convert a dataset first)")
     base = Path(work) if work else Path(tempfile.mkdtemp(prefix="dexflow-real-"))
     data_root = _subset_root(source, sequences, base / "subset")
@@ -509,11 +495,8 @@ def bench_real(
         overrides = [f"hand={hand}", "data=custom", f"data.root={data_root}", f"run={run}"]
         params = load_params(compose_params(overrides, output=folder / "params.yaml"))
         params = dataclasses.replace(params, run=dataclasses.replace(params.run, n_jobs=workers))
-        d = {k: folder / k for k in ("aligned", "dexflow", "position", "contact", "refine",
-                                     "simulate", "metrics", "plots")}  # fmt: skip
-        d["demo"] = data_root
         seconds, summary, frames = {}, {}, 0
-        for name, fn in _pipeline_stages(params, d):
+        for name, fn in _pipeline_stages(params, Layout.of(data_root, root=folder)):
             if name == "demo":
                 continue
             start = time.perf_counter()

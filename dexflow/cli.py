@@ -73,7 +73,8 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from dexflow.data.demo import DemoConfig, generate_demo
+    from dexflow.data.demo import generate_demo
+    from dexflow.params import DemoConfig
 
     cfg = DemoConfig(
         seed=args.seed, objects=args.objects or [], sequences_per_object=args.sequences_per_object
@@ -171,12 +172,10 @@ def _cmd_report(args: argparse.Namespace) -> int:
     import subprocess
 
     from dexflow import report
+    from dexflow.io.layout import Layout
 
     if args.what == "summary":
-        out = report.write_summary(
-            "reports/metrics", "data/metrics/sequences.csv", "reports/plots", args.out or
-            "reports/summary.md", "reports/figures",
-        )  # fmt: skip
+        out = report.write_project_summary(Layout(), out_md=args.out)
         print(f"wrote {out}")
         return 0
     experiments = []
@@ -200,7 +199,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     if not experiments:
         logging.error("no experiments found (dvc exp show and --multirun directories are empty)")
         return 1
-    out = Path(args.out or "reports/ablation.md")
+    out = Path(args.out) if args.out else Layout().reports / "ablation.md"
     out = report.write_ablation(experiments, out, out.parent / "figures")
     print(f"wrote {out} ({len(experiments)} experiments)")
     return 0

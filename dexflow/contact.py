@@ -25,8 +25,6 @@ frame (what refinement's E_dis and E_align need).
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,10 +32,17 @@ import torch
 from scipy.spatial import cKDTree
 
 from dexflow.hands.robot import RobotHand, cached_hand
+from dexflow.io.artifacts import ContactResult, ObjectAssets, read_trajectory, write_contact
+from dexflow.io.layout import Layout, StageDir
+from dexflow.io.sequence import load_sequence
+from dexflow.measures import contact_counts, precision_recall, state_flicker
 from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.params import ContactParams, PipelineParams
+from dexflow.resume import StageOutput
+from dexflow.runner import StageSpec
 
 __all__ = [
-    "ContactParams",
+    "STAGE",
     "contact_states",
     "finger_distances",
     "hysteresis",
@@ -45,24 +50,6 @@ __all__ = [
     "run_contact",
     "state_changes",
 ]
-
-
-@dataclass
-class ContactParams:
-    """Stage ``contact`` (``contact`` in params.yaml)."""
-
-    dis_min_m: float = 0.010
-    dis_max_m: float = 0.0158
-    alpha: float = 0.6
-    finger_speed_mps: float = 0.8
-    tau_c: float = 0.7
-    smoothing: bool = True
-    guard: bool = True
-    spline_tolerance_m: float = 0.01
-    beta1: float = 1.0
-    accel_tolerance_mps2: float = 5.0
-    v_max_mps: float = 0.5
-    map_points: int = 8
 
 
 def hysteresis(distance: np.ndarray, dis_min: float, dis_max: float) -> np.ndarray:
@@ -166,14 +153,6 @@ def state_changes(state: np.ndarray) -> np.ndarray:
     return np.abs(np.diff(np.asarray(state, dtype=int), axis=0)).sum(axis=0)
 
 
-def _prf(pred: np.ndarray, truth: np.ndarray) -> dict:
-    tp = float((pred & truth).sum())
-    precision = tp / max(pred.sum(), 1)
-    recall = tp / max(truth.sum(), 1)
-    f1 = 2 * precision * recall / max(precision + recall, 1e-12)
-    return {"precision": precision, "recall": recall, "f1": f1}
-
-
 def _contact_map(local, dist, final, masks, surface_tree, surface_normals, k):
     rows = []
     for f, mask in enumerate(masks):
@@ -206,21 +185,16 @@ def _contact_map(local, dist, final, masks, surface_tree, surface_normals, k):
     }
 
 
-def contact_sequence(hand, retarget_file: Path, aligned_file: Path, aligned_root: Path, params):
-    """Everything for one sequence: arrays to save and statistics."""
-    from dexflow.io.sequence import load_sequence
-
-    seq = load_sequence(aligned_file, data_root=aligned_root)
-    with np.load(retarget_file) as data:
-        q, names = data["q"], [str(n) for n in data["joint_names"]]
-    if names != hand.joint_names:
-        raise ValueError(
-            f"{retarget_file}: joints {names[:8]}... do not match hand '{hand.spec.name}'"
-        )
-    obj_dir = (aligned_root / seq.obj_mesh).parent
-    sdf = SignedDistanceGrid.load(obj_dir / "sdf.npz")
-    with np.load(obj_dir / "surface.npz") as surface:
-        tree, normals = cKDTree(surface["points"]), surface["normals"]
+def contact_sequence(
+    hand: RobotHand, trajectory_file: Path, aligned: StageDir, params: ContactParams
+) -> tuple[ContactResult, dict]:
+    """Everything for one sequence: the result to save and statistics."""
+    seq = load_sequence(aligned.sequence(trajectory_file), data_root=aligned.root)
+    q = read_trajectory(trajectory_file, hand.joint_names, frames=seq.num_frames).q
+    assets = ObjectAssets(aligned.object_of(seq.obj_mesh))
+    sdf = assets.sdf()
+    points, normals = assets.surface()
+    tree = cKDTree(points)
     distance, dist, local = finger_distances(hand, q, seq.obj_pose, sdf)
     masks = list(hand.finger_point_masks.values())
     closest = np.stack(
@@ -231,23 +205,22 @@ def contact_sequence(hand, retarget_file: Path, aligned_file: Path, aligned_root
     )
     guard = _guard(world, seq.obj_pose[:, :3, 3], seq.fps, params)
     raw, final = contact_states(distance, seq.fps, params, guard)
-    arrays = {
-        "distance_m": distance,
-        "raw": raw,
-        "final": final,
-        "fingers": np.array(list(hand.spec.fingers)),
-        "fps": np.array(seq.fps),
-        **_contact_map(local, dist, final, masks, tree, normals, params.map_points),
-    }
-    seconds = len(q) / seq.fps
+    result = ContactResult(
+        distance_m=distance,
+        raw=raw,
+        final=final,
+        fingers=list(hand.spec.fingers),
+        fps=seq.fps,
+        contact_map=_contact_map(local, dist, final, masks, tree, normals, params.map_points),
+    )
     threshold = distance < params.dis_min_m  # a single threshold, for comparison
     stats = {
         "frames": len(q),
         "changes_threshold": int(state_changes(threshold).sum()),
         "changes_raw": int(state_changes(raw).sum()),
         "changes_final": int(state_changes(final).sum()),
-        "changes_per_finger_s_raw": float(state_changes(raw).mean() / seconds),
-        "changes_per_finger_s_final": float(state_changes(final).mean() / seconds),
+        "flicker_raw": state_flicker(raw, seq.fps),
+        "flicker_final": state_flicker(final, seq.fps),
         "contact_fraction": float(final.mean()),
     }
     if seq.gt_contact is not None:
@@ -255,69 +228,68 @@ def contact_sequence(hand, retarget_file: Path, aligned_file: Path, aligned_root
 
         cols = [FINGERS.index(f) for f in hand.spec.fingers]
         truth = seq.gt_contact[:, cols]
-        stats["raw_vs_truth"] = _prf(raw, truth)
-        stats["final_vs_truth"] = _prf(final, truth)
-    return arrays, stats
+        stats["raw_vs_truth"] = contact_counts(raw, truth)
+        stats["final_vs_truth"] = contact_counts(final, truth)
+    return result, stats
 
 
-def run_contact(params, retarget_root, aligned_root, out_root) -> dict:
-    """Stage runner over every retargeted sequence."""
-    from dexflow.config import project_root
-    from dexflow.io.atomic import save_npz
-    from dexflow.resume import StageOutput
-
-    retarget_root, aligned_root, out_root = Path(retarget_root), Path(aligned_root), Path(out_root)
+def run_contact(params: PipelineParams, layout: Layout) -> dict:
+    """Stage runner over every retargeted sequence (``layout.retarget("dexflow")``)."""
+    source, aligned, out = layout.retarget("dexflow"), layout.scale_align, layout.contact
     stage = StageOutput(
-        out_root,
+        out,
         "contact",
         {"hand": params.hand, "contact": params.contact},
-        inputs=(retarget_root, aligned_root),
+        inputs=(source, aligned),
     )
     files = stage.start()
-    spec, base_dir = params.hand, project_root() / "conf" / "hand"
+    spec, base_dir = params.hand, layout.hand_dir
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
         hand = cached_hand(spec, base_dir)
-        arrays, stats = contact_sequence(
-            hand, path, aligned_root / "sequences" / path.name, aligned_root, params.contact
-        )
-        save_npz(out_root / "sequences" / path.name, arrays)
+        result, stats = contact_sequence(hand, path, aligned, params.contact)
+        write_contact(out.sequence(path), result)
         return stats
 
-    start = time.perf_counter()
-    results = stage.map(one, files, params.run)
-    seconds = time.perf_counter() - start
-    sequences = {r.item.stem: r.entry() for r in results}
-    ok = [s for s in sequences.values() if s["status"] == "ok"]
+    tally = stage.run(one, files, params.run)
+    ok, seconds = tally.ok, tally.seconds
     single = sum(s["changes_threshold"] for s in ok)
     raw = sum(s["changes_raw"] for s in ok)
     final = sum(s["changes_final"] for s in ok)
-
-    def mean(key):
-        return float(np.mean([s[key] for s in ok])) if ok else 0.0
-
     summary = {
-        "stage": "contact",
-        "num_sequences": len(files),
-        "num_ok": len(ok),
-        "num_failed": len(files) - len(ok),
-        "num_frames": sum(s["frames"] for s in ok),
+        **tally.counts("contact"),
         "changes_raw": raw,
         "changes_final": final,
         "changes_threshold": single,
         "fluctuation_removed": (raw - final) / raw if raw else 0.0,
         "fluctuation_removed_vs_threshold": (single - final) / single if single else 0.0,
-        "changes_per_finger_s_raw": mean("changes_per_finger_s_raw"),
-        "changes_per_finger_s_final": mean("changes_per_finger_s_final"),
+        "flicker_raw": tally.mean("flicker_raw", 0.0),
+        "flicker_final": tally.mean("flicker_final", 0.0),
     }
     truth = [s for s in ok if "raw_vs_truth" in s]
     for which in ("raw_vs_truth", "final_vs_truth"):
         if truth:
-            summary[which] = {
-                k: float(np.mean([s[which][k] for s in truth]))
-                for k in ("precision", "recall", "f1")
-            }
-    summary["sequences"] = dict(sorted(sequences.items()))
+            counts = {k: sum(s[which][k] for s in truth) for k in ("tp", "fp", "fn")}
+            summary[which] = precision_recall(**counts)
+    summary["sequences"] = dict(sorted(tally.sequences.items()))
     stage.finish(summary)
-    return {**summary, "seconds": seconds}
+    frames = summary["num_frames"]
+    return {**summary, "timing": {"frames_per_second": frames / seconds if seconds else 0.0}}
+
+
+STAGE = StageSpec(
+    name="contact",
+    run=run_contact,
+    metric_keys=("num_sequences", "num_ok", "num_failed", "num_frames", "fluctuation_removed",
+                 "fluctuation_removed_vs_threshold", "flicker_raw", "flicker_final",
+                 "raw_vs_truth", "final_vs_truth"),
+    describe=lambda s: (
+        f"{s['num_ok']}/{s['num_sequences']} sequences; fluctuations removed: "
+        f"{100 * s['fluctuation_removed']:.0f} % of raw (hysteresis) states, "
+        f"{100 * s['fluctuation_removed_vs_threshold']:.0f} % of single-threshold states; "
+        f"{s['flicker_raw']:.2f} -> {s['flicker_final']:.2f} changes per "
+        f"finger per second; F1 {s.get('raw_vs_truth', {}).get('f1', float('nan')):.3f} -> "
+        f"{s.get('final_vs_truth', {}).get('f1', float('nan')):.3f}"
+    ),
+)  # fmt: skip

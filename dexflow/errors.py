@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 __all__ = [
+    "ArtifactError",
     "ConfigError",
     "DexflowError",
     "HandConfigError",
@@ -23,6 +24,11 @@ class ConfigError(DexflowError, ValueError):
 
 class HandConfigError(ConfigError):
     """A hand configuration names links or joints its model does not have."""
+
+
+class ArtifactError(DexflowError, ValueError):
+    """A stage output is missing, incomplete or does not fit its reader (another hand's joints,
+    another frame count); the message names the file and what was expected."""
 
 
 class MeshError(DexflowError, ValueError):

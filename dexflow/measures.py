@@ -16,9 +16,14 @@ if TYPE_CHECKING:
     from dexflow.objects.sdf import SignedDistanceGrid
 
 __all__ = [
+    "contact_counts",
+    "contact_distance",
     "fingertip_speeds",
+    "finite_mean",
     "penetration_depth",
+    "precision_recall",
     "rms_acceleration",
+    "state_flicker",
     "surface_distances",
     "velocity_kl",
 ]
@@ -108,3 +113,62 @@ def velocity_kl(
     r = np.histogram(np.clip(other, 0, top), edges)[0] + eps
     p, r = p / p.sum(), r / r.sum()
     return float(np.sum(p * np.log(p / r)))
+
+
+def contact_distance(per_finger: np.ndarray, contact: np.ndarray) -> np.ndarray:
+    """Per frame the mean over fingers in contact of their distance clipped at 0 (NaN if none).
+
+    Args:
+        per_finger: (T, F) each finger's smallest signed distance to the object.
+        contact: (T, F) contact states.
+
+    Returns:
+        (T,) contact distance in the unit of ``per_finger``.
+    """
+    contact = np.asarray(contact, dtype=bool)
+    clipped = np.where(contact, np.clip(per_finger, 0.0, None), 0.0)
+    count = contact.sum(axis=1)
+    return np.where(count > 0, clipped.sum(axis=1) / np.maximum(count, 1), np.nan)
+
+
+def state_flicker(states: np.ndarray, fps: float) -> float:
+    """State changes per finger per second of (T, F) boolean states.
+
+    The changes are counted between consecutive frames, so the time they happen in is the
+    ``T - 1`` frame intervals, ``(T - 1) / fps`` seconds; 0 for fewer than two frames.
+    """
+    states = np.asarray(states, dtype=bool)
+    if len(states) < 2:
+        return 0.0
+    changes = np.count_nonzero(states[1:] != states[:-1])
+    return float(changes / states.shape[1] / ((len(states) - 1) / fps))
+
+
+def contact_counts(predicted: np.ndarray, truth: np.ndarray) -> dict[str, int]:
+    """True positives, false positives and false negatives of (T, F) contact states.
+
+    Counts (not rates) so that sequences pool: :func:`precision_recall` of the summed counts
+    is the precision and recall over all frames and fingers of all sequences.
+    """
+    predicted, truth = np.asarray(predicted, dtype=bool), np.asarray(truth, dtype=bool)
+    return {
+        "tp": int(np.count_nonzero(predicted & truth)),
+        "fp": int(np.count_nonzero(predicted & ~truth)),
+        "fn": int(np.count_nonzero(~predicted & truth)),
+    }
+
+
+def precision_recall(tp: int, fp: int, fn: int) -> dict[str, float]:
+    """Precision, recall and F1 from counts (0 where a denominator is 0)."""
+    precision = tp / (tp + fp) if tp + fp else 0.0
+    recall = tp / (tp + fn) if tp + fn else 0.0
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+    return {"precision": precision, "recall": recall, "f1": f1}
+
+
+def finite_mean(values) -> float:
+    """Mean of the finite values (NaN where there is none): how every per-frame measure is
+    averaged over frames, and every per-sequence one over sequences."""
+    values = np.asarray(values, dtype=float).ravel()
+    values = values[np.isfinite(values)]
+    return float(values.mean()) if len(values) else float("nan")

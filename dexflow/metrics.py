@@ -48,77 +48,61 @@ from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from scipy.spatial import ConvexHull
 
-from dexflow.hands.robot import RobotHand
+from dexflow.hands.robot import RobotHand, cached_hand
+from dexflow.human.keypoints import FINGERS, FINGERTIPS
+from dexflow.io.artifacts import (
+    MetricFrames,
+    ObjectAssets,
+    read_contact,
+    read_metric_frames,
+    read_trajectory,
+    write_metric_frames,
+)
+from dexflow.io.atomic import atomic_path
+from dexflow.io.layout import TRAJECTORIES, Layout
+from dexflow.io.sequence import load_sequence
 from dexflow.measures import (
+    contact_counts,
+    contact_distance,
     fingertip_speeds,
+    finite_mean,
     penetration_depth,
+    precision_recall,
     rms_acceleration,
+    state_flicker,
     surface_distances,
     velocity_kl,
 )
 from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.params import MetricsParams, PipelineParams
+from dexflow.resume import StageOutput
+from dexflow.runner import StageSpec
 
 __all__ = [
     "METHODS",
-    "MetricsParams",
+    "STAGE",
     "SelfCollision",
     "chamfer_per_frame",
-    "contact_distance",
     "run_metrics",
-    "state_flicker",
+    "trajectory_metrics",
 ]
 
-METHODS = ("baseline", "retarget", "refine")
-TIPS = (4, 8, 12, 16, 20)  # MANO fingertips
-# The upstream outputs the stage reads (keys of ``roots``); sequences are listed from the first
-STAGE_INPUTS = ("retarget", "baseline", "refine", "contact", "scale_align", "simulate")
-
-
-@dataclass
-class MetricsParams:
-    """Stage ``metrics`` (``metrics`` in params.yaml)."""
-
-    pd_violation_m: float = 0.005
-    spd_violation_m: float = 0.002
-    limit_tolerance_rad: float = 1e-4
-    kl_bins: int = 30
+METHODS = TRAJECTORIES
 
 
 # ------------------------------------------------------------------------ hand-object measures
-
-
-def contact_distance(per_finger: np.ndarray, contact: np.ndarray) -> np.ndarray:
-    """Per frame the mean over fingers in contact of their distance clipped at 0 (NaN if none).
-
-    Args:
-        per_finger: (T, F) each finger's smallest signed distance to the object.
-        contact: (T, F) contact states.
-    """
-    clipped = np.where(contact, np.clip(per_finger, 0.0, None), 0.0)
-    count = contact.sum(axis=1)
-    return np.where(count > 0, clipped.sum(axis=1) / np.maximum(count, 1), np.nan)
 
 
 def chamfer_per_frame(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Symmetric Chamfer distance per frame between point sets (T, A, 3) and (T, B, 3)."""
     d = np.linalg.norm(a[:, :, None] - b[:, None], axis=-1)  # (T, A, B)
     return 0.5 * (d.min(axis=2).mean(axis=1) + d.min(axis=1).mean(axis=1))
-
-
-def state_flicker(states: np.ndarray, fps: float) -> float:
-    """State changes per finger per second of (T, F) boolean states."""
-    states = np.asarray(states, dtype=bool)
-    if len(states) < 2:
-        return 0.0
-    changes = np.count_nonzero(states[1:] != states[:-1])
-    return float(changes / states.shape[1] / ((len(states) - 1) / fps))
 
 
 class SelfCollision:
@@ -248,7 +232,7 @@ def trajectory_metrics(
         robot = hand.keypoints(torch.as_tensor(q, dtype=hand.dtype)).numpy()
     distance = np.linalg.norm(robot - human, axis=-1)  # (T, K)
     error = np.where(observed, distance.mean(axis=1), np.nan)
-    tips = [i for i, m in enumerate(hand.mano_indices) if m in TIPS]
+    tips = [i for i, m in enumerate(hand.mano_indices) if m in FINGERTIPS]
     tip_error = np.where(observed, distance[:, tips].mean(axis=1), np.nan)
     chamfer = np.full(len(q), np.nan)
     if observed.any():
@@ -283,127 +267,99 @@ def trajectory_metrics(
 
 
 def _mean_mm(values: np.ndarray) -> float:
-    values = np.asarray(values, dtype=float)
-    values = values[np.isfinite(values)]
-    return float(values.mean() * 1000) if len(values) else float("nan")
+    return finite_mean(values) * 1000
 
 
 # ---------------------------------------------------------------------------------- stage
 
 
-def _simulation(sim_root: Path) -> dict[str, dict]:
-    path = sim_root / "summary.json"
-    if not path.is_file():
+def _simulation(summary: Path) -> dict[str, dict]:
+    """Per sequence, stage simulate's entry (empty if that stage has not written its summary)."""
+    if not summary.is_file():
         return {}
-    return json.loads(path.read_text())["sequences"]
+    return json.loads(summary.read_text())["sequences"]
 
 
-def run_metrics(params, roots: dict[str, Path], out_root, plots_root) -> dict:
+def run_metrics(params: PipelineParams, layout: Layout) -> dict:
     """Stage runner: metrics of every sequence and method, aggregates and per-frame tables.
 
-    Args:
-        params: Pipeline params (``hand``, ``metrics``, ``run``).
-        roots: ``scale_align``, ``contact``, ``baseline``, ``retarget``, ``refine`` and
-            ``simulate`` (holding ``<method>/summary.json``) directories.
-        out_root: Where the per-sequence table goes (``sequences.csv``).
-        plots_root: Where the per-frame CSVs go (DVC plots).
+    Reads every trajectory (:data:`METHODS`), stage contact's states, stage scale_align's
+    sequences and objects and stage simulate's summaries; writes the per-frame arrays
+    (``layout.metrics``), ``sequences.csv`` and the per-frame plot CSVs (``layout.plots``).
 
     Returns:
-        The flat aggregate metrics (``<method>.<metric>``, ``contact.<metric>``) and, under
-        ``"sequences"``, every sequence's entry.
+        The flat aggregate metrics (``<method>.<metric>``, ``contact.<metric>``), the sequence
+        counts and, under ``"sequences"``, every sequence's entry.
     """
-    from dexflow.config import project_root
-    from dexflow.hands.robot import cached_hand
-    from dexflow.io.atomic import atomic_path, save_npz
-    from dexflow.io.sequence import load_sequence
-    from dexflow.resume import StageOutput
-
-    roots = {k: Path(v) for k, v in roots.items()}
-    out_root, plots_root = Path(out_root), Path(plots_root)
+    aligned, contacts, out = layout.scale_align, layout.contact, layout.metrics
     stage = StageOutput(
-        out_root,
+        out,
         "metrics",
         {"hand": params.hand, "metrics": params.metrics},
-        inputs=[roots[k] for k in STAGE_INPUTS],
+        inputs=[layout.trajectory(m) for m in METHODS]
+        + [contacts, aligned]
+        + [layout.simulate(m) for m in METHODS],
     )
     files = stage.start()
-    spec, base_dir, mp = params.hand, project_root() / "conf" / "hand", params.metrics
-    simulated = {m: _simulation(roots["simulate"] / m) for m in METHODS}
+    spec, base_dir, mp = params.hand, layout.hand_dir, params.metrics
+    simulated = {m: _simulation(layout.simulate(m).summary) for m in METHODS}
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
         hand = cached_hand(spec, base_dir)
-        name = path.name
-        seq = load_sequence(roots["scale_align"] / "sequences" / name, roots["scale_align"])
-        with np.load(roots["retarget"] / "sequences" / name) as data:
-            human, observed = data["keypoints_human"], data["observed"].astype(bool)
-        with np.load(roots["contact"] / "sequences" / name) as data:
-            raw, final = data["raw"], data["final"]
-            fingers = [str(f) for f in data["fingers"]]
-        sdf = SignedDistanceGrid.load((roots["scale_align"] / seq.obj_mesh).parent / "sdf.npz")
-        entry = {"object": seq.obj_name, "frames": len(seq.obj_pose), "methods": {}}
+        seq = load_sequence(aligned.sequence(path), aligned.root)
+        frames, fingers = seq.num_frames, list(hand.spec.fingers)
+        retargeted = read_trajectory(layout.retarget("dexflow").sequence(path), hand.joint_names)
+        human, observed = retargeted["keypoints_human"], retargeted["observed"].astype(bool)
+        found = read_contact(contacts.sequence(path), fingers, frames)
+        sdf = ObjectAssets(aligned.object_of(seq.obj_mesh)).sdf()
+        entry = {"object": seq.obj_name, "frames": frames, "methods": {}}
         per_frame = {}
         for method in METHODS:
-            with np.load(roots[method] / "sequences" / name) as data:
-                q = data["q"]
-            scalars, frames = trajectory_metrics(
-                hand, q, human, observed, seq.obj_pose, sdf, final, seq.fps, mp
+            q = read_trajectory(
+                layout.trajectory(method).sequence(path), hand.joint_names, frames
+            ).q
+            scalars, values = trajectory_metrics(
+                hand, q, human, observed, seq.obj_pose, sdf, found.final, seq.fps, mp
             )
             sim = simulated[method].get(path.stem, {})
             if sim.get("status") == "ok":
                 scalars["ssr"] = 100.0 * sim["success_contact"]
                 scalars["ssr_bench"] = 100.0 * sim["success_bench"]
             entry["methods"][method] = scalars
-            per_frame[method] = frames
+            per_frame[method] = values
         entry["contact"] = {
-            "flicker_raw": state_flicker(raw, seq.fps),
-            "flicker_final": state_flicker(final, seq.fps),
+            "flicker_raw": state_flicker(found.raw, seq.fps),
+            "flicker_final": state_flicker(found.final, seq.fps),
         }
         if seq.gt_contact is not None:
-            order = ["thumb", "index", "middle", "ring", "little"]
-            truth = np.asarray(seq.gt_contact, dtype=bool)[:, [order.index(f) for f in fingers]]
-            entry["contact"]["tp"] = int(np.count_nonzero(final & truth))
-            entry["contact"]["fp"] = int(np.count_nonzero(final & ~truth))
-            entry["contact"]["fn"] = int(np.count_nonzero(~final & truth))
-        arrays = {"time": np.arange(len(seq.obj_pose)) / seq.fps, "contact": final}
-        for method in METHODS:
-            arrays |= {f"{method}.{k}": v for k, v in per_frame[method].items()}
-        save_npz(out_root / "sequences" / name, arrays)
+            truth = np.asarray(seq.gt_contact, dtype=bool)[:, [FINGERS.index(f) for f in fingers]]
+            entry["contact"] |= contact_counts(found.final, truth)
+        time_s = np.arange(frames) / seq.fps
+        write_metric_frames(out.sequence(path), MetricFrames(time_s, found.final, per_frame))
         return entry
 
-    results = stage.map(one, files, params.run)
-    entries = {r.item.stem: r for r in results}
-    ok = {name: r.value | {"per_frame": _per_frame(out_root, name)}
-          for name, r in entries.items() if r.ok}  # fmt: skip
-    summary = _aggregate(ok)
-    summary["num_sequences"] = len(files)
-    summary["num_failed"] = len(files) - len(ok)
-    _write_tables(ok, spec.name, out_root, plots_root, atomic_path)
-    summary["sequences"] = {
-        name: (
-            {k: v for k, v in r.value.items() if k != "per_frame"} | {"status": "ok"}
-            if r.ok
-            else {"status": "failed", "error": r.error}
-        )
-        for name, r in sorted(entries.items())
+    tally = stage.run(one, files, params.run)
+    ok = {
+        name: entry | {"per_frame": read_metric_frames(out.sequence(name))}
+        for name, entry in sorted(tally.sequences.items())
+        if entry["status"] == "ok"
     }
+    counts = tally.counts("metrics")
+    summary = {
+        **_aggregate(ok, mp.kl_bins),
+        **{k: counts[k] for k in ("num_sequences", "num_ok", "num_failed", "num_frames")},
+    }
+    _write_tables(ok, spec.name, layout.metrics_table, layout.plots)
+    summary["sequences"] = dict(sorted(tally.sequences.items()))
     stage.finish(summary)
     return summary
 
 
-def _per_frame(out_root: Path, name: str) -> dict:
-    """A sequence's per-frame arrays as the metrics stage saved them
-    (``out_root/sequences/<name>.npz``): ``time``, ``contact`` and one dict per method."""
-    with np.load(out_root / "sequences" / f"{name}.npz") as data:
-        arrays = {k: data[k] for k in data.files}
-    out: dict = {"time": arrays.pop("time"), "contact": arrays.pop("contact")}
-    for key, value in arrays.items():
-        method, _, metric = key.partition(".")
-        out.setdefault(method, {})[metric] = value
-    return out
-
-
-def _aggregate(ok: dict[str, dict]) -> dict:
+def _aggregate(ok: dict[str, dict], kl_bins: int) -> dict:
+    """Aggregates over sequences (see the module docstring): means, except ``*_max_mm`` (the
+    largest), ``velocity_kl`` (the speeds of all sequences pooled, ``kl_bins`` bins) and
+    contact precision/recall (counts pooled)."""
     out: dict = {}
     for method in METHODS:
         rows = [e["methods"][method] for e in ok.values()]
@@ -413,28 +369,31 @@ def _aggregate(ok: dict[str, dict]) -> dict:
             values = values[np.isfinite(values)]
             reduce = np.max if key.endswith("_max_mm") else np.mean
             out[f"{method}.{key}"] = float(reduce(values)) if len(values) else float("nan")
-        human = [e["per_frame"][method]["tip_speed_human"] for e in ok.values()]
-        robot = [e["per_frame"][method]["tip_speed_robot"] for e in ok.values()]
+        human = [e["per_frame"].methods[method]["tip_speed_human"] for e in ok.values()]
+        robot = [e["per_frame"].methods[method]["tip_speed_robot"] for e in ok.values()]
         if human:
-            out[f"{method}.velocity_kl"] = velocity_kl(np.concatenate(human), np.concatenate(robot))
+            out[f"{method}.velocity_kl"] = velocity_kl(
+                np.concatenate(human), np.concatenate(robot), bins=kl_bins
+            )
     contact = [e["contact"] for e in ok.values()]
     for key in ("flicker_raw", "flicker_final"):
         out[f"contact.{key}"] = float(np.mean([c[key] for c in contact])) if contact else 0.0
     tp, fp, fn = (sum(c.get(k, 0) for c in contact) for k in ("tp", "fp", "fn"))
     if tp + fp + fn:
-        out["contact.precision"] = tp / (tp + fp) if tp + fp else 0.0
-        out["contact.recall"] = tp / (tp + fn) if tp + fn else 0.0
+        scores = precision_recall(tp, fp, fn)
+        out["contact.precision"], out["contact.recall"] = scores["precision"], scores["recall"]
     return out
 
 
-def _write_tables(ok: dict[str, dict], hand: str, out_root: Path, plots_root: Path, atomic_path):
-    """``sequences.csv`` (one row per sequence and method) and the per-frame plot CSVs."""
-    out_root.mkdir(parents=True, exist_ok=True)
-    plots_root.mkdir(parents=True, exist_ok=True)
+def _write_tables(ok: dict[str, dict], hand: str, table: Path, plots: Path) -> None:
+    """``table`` (``sequences.csv``: one row per sequence and method) and the per-frame plot
+    CSVs in ``plots``."""
+    table.parent.mkdir(parents=True, exist_ok=True)
+    plots.mkdir(parents=True, exist_ok=True)
     columns = ["sequence", "object", "hand", "method", "frames", "keypoint_error_mm",
                "fingertip_error_mm", "time_aligned_cd_mm", "velocity_kl", "rms_acc", "pd_mm",
                "pd_max_mm", "cd_mm", "spd_mm", "fvr", "ssr", "ssr_bench"]  # fmt: skip
-    with atomic_path(out_root / "sequences.csv") as tmp, open(tmp, "w", newline="") as f:
+    with atomic_path(table) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(columns)
         for name, e in sorted(ok.items()):
@@ -442,33 +401,52 @@ def _write_tables(ok: dict[str, dict], hand: str, out_root: Path, plots_root: Pa
                 m = e["methods"][method]
                 row = [name, e["object"], hand, method, e["frames"]]
                 writer.writerow(row + [_fmt(m.get(k, np.nan)) for k in columns[5:]])
+
+    def frame_rows(name: str, frames: MetricFrames, values):
+        for t in range(len(frames.time)):
+            yield [name, t, f"{frames.time[t]:.4f}", *values(frames, t)]
+
     tables = {
-        "keypoint_error.csv": ("keypoint_error_m", "keypoint error (mm)"),
-        "penetration.csv": ("pd_m", "penetration depth (mm)"),
+        "keypoint_error.csv": ([*METHODS], lambda f, t: _per_method_mm(f, "keypoint_error_m", t)),
+        "penetration.csv": ([*METHODS], lambda f, t: _per_method_mm(f, "pd_m", t)),
+        "contact_timeline.csv": (["fingers_in_contact"], lambda f, t: [int(f.contact[t].sum())]),
     }
-    for filename, (key, _) in tables.items():
-        with atomic_path(plots_root / filename) as tmp, open(tmp, "w", newline="") as f:
+    for filename, (header, values) in tables.items():
+        with atomic_path(plots / filename) as tmp, open(tmp, "w", newline="") as f:
             writer = csv.writer(f)
-            writer.writerow(["step", "sequence", "frame", "time_s", *METHODS])
-            step = 0
-            for name, e in sorted(ok.items()):
-                pf = e["per_frame"]
-                for t in range(len(pf["time"])):
-                    values = [_fmt(pf[m][key][t] * 1000) for m in METHODS]
-                    writer.writerow([step, name, t, f"{pf['time'][t]:.4f}", *values])
-                    step += 1
-    with atomic_path(plots_root / "contact_timeline.csv") as tmp, open(tmp, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["step", "sequence", "frame", "time_s", "fingers_in_contact"])
-        step = 0
-        for name, e in sorted(ok.items()):
-            pf = e["per_frame"]
-            for t in range(len(pf["time"])):
-                count = int(pf["contact"][t].sum())
-                writer.writerow([step, name, t, f"{pf['time'][t]:.4f}", count])
-                step += 1
+            writer.writerow(["step", "sequence", "frame", "time_s", *header])
+            rows = (r for name, e in sorted(ok.items())
+                    for r in frame_rows(name, e["per_frame"], values))  # fmt: skip
+            for step, row in enumerate(rows):
+                writer.writerow([step, *row])
+
+
+def _per_method_mm(frames: MetricFrames, key: str, t: int) -> list[str]:
+    return [_fmt(frames.methods[m][key][t] * 1000) for m in METHODS]
 
 
 def _fmt(value) -> str:
     value = float(value)
     return "" if not np.isfinite(value) else f"{value:.6g}"
+
+
+def _describe(s: dict) -> str:
+    def line(method: str) -> str:
+        values = (s.get(f"{method}.{k}", float("nan")) for k in (
+            "keypoint_error_mm", "ssr", "pd_mm", "cd_mm", "spd_mm", "fvr", "velocity_kl",
+            "rms_acc", "time_aligned_cd_mm"))  # fmt: skip
+        return (
+            "{}: error {:.2f} mm, SSR {:.1f} %, PD {:.2f} mm, CD {:.2f} mm, SPD {:.2f} mm, "
+            "FVR {:.3f}, velocity KL {:.3f}, RMS acc {:.2f} rad/s^2, time-aligned CD {:.2f} mm"
+        ).format(method, *values)
+
+    counts = f"{s['num_ok']}/{s['num_sequences']} sequences"
+    return "; ".join([counts, *(line(m) for m in METHODS)])
+
+
+STAGE = StageSpec(
+    name="metrics",
+    run=run_metrics,
+    metric_keys=None,  # every aggregate
+    describe=_describe,
+)

@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 from dexflow.errors import ConfigError
 
 if TYPE_CHECKING:
-    from dexflow.config import RunParams
+    from dexflow.params import RunParams
 
 __all__ = ["ItemResult", "map_items", "raise_first_error"]
 

@@ -13,6 +13,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from dexflow.human.keypoints import FINGER_KEYPOINTS, FINGERS, FINGERTIPS
 from dexflow.io.atomic import atomic_path
+from dexflow.io.layout import StageDir
 from dexflow.io.sequence import load_sequence
 from dexflow.objects.mesh import load_mesh
 
@@ -54,7 +55,7 @@ def plot_sequence_frames(
     rows = int(np.ceil(len(names) / columns))
     fig = plt.figure(figsize=(4 * columns, 4 * rows))
     for i, name in enumerate(names):
-        seq = load_sequence(data_root / "sequences" / f"{name}.npz", data_root=data_root)
+        seq = load_sequence(StageDir(data_root).sequence(name), data_root=data_root)
         mesh = load_mesh(data_root / seq.obj_mesh)
         held = (
             np.flatnonzero(seq.gt_contact.any(axis=1) & seq.valid_mask)

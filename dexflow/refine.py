@@ -44,17 +44,35 @@ Joint limits hold exactly (projection after every step and after blending). Metr
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from dexflow.hands.robot import RobotHand, cached_hand
+from dexflow.io.artifacts import (
+    ObjectAssets,
+    Trajectory,
+    read_contact,
+    read_trajectory,
+    write_trajectory,
+)
+from dexflow.io.layout import Layout
+from dexflow.io.sequence import load_sequence
+from dexflow.measures import (
+    contact_distance,
+    finite_mean,
+    penetration_depth,
+    rms_acceleration,
+    surface_distances,
+)
 from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.params import PipelineParams, RefineParams
+from dexflow.resume import StageOutput
+from dexflow.runner import StageSpec
 
 __all__ = [
-    "RefineParams",
+    "STAGE",
     "TorchSDF",
     "energy_terms",
     "hand_object_measures",
@@ -62,35 +80,6 @@ __all__ = [
     "release_hand",
     "run_refine",
 ]
-
-
-@dataclass
-class RefineParams:
-    """Stage ``refine`` (``refine`` in params.yaml)."""
-
-    finger_order: list[str] = field(
-        default_factory=lambda: ["thumb", "index", "middle", "ring", "little"]
-    )
-    w_dis: float = 1.0
-    w_pen: float = 30.0
-    w_align: float = 1e-5
-    w_spen: float = 0.01
-    w_joints: float = 1e-4
-    w_smooth: float = 0.1
-    spen_delta_m: float = 0.005
-    pen_margin_m: float = 0.001
-    spen_points: int = 64
-    iterations: int = 30
-    learning_rate: float = 0.03
-    blend_frames: float = 3.0
-    refine_base: bool = False
-    release: bool = True
-    release_w_pen: float = 300.0
-    release_w_touch: float = 100.0
-    release_w_track: float = 30.0
-    release_w_smooth: float = 300.0
-    release_w_smooth_joints: float = 30.0
-    release_iterations: int = 60
 
 
 class TorchSDF:
@@ -123,41 +112,36 @@ def hand_object_measures(
     hand: RobotHand,
     q: np.ndarray,
     obj_pose: np.ndarray,
-    sdf: TorchSDF,
+    sdf: SignedDistanceGrid,
     contact: np.ndarray,
     spen_delta_m: float,
 ) -> dict[str, np.ndarray]:
-    """Per-frame penetration depth, contact distance and self-penetration proxy (metres).
+    """Per-frame measures of what refinement changes (metres).
 
-    - ``pd``: the deepest hand surface point inside the object (0 if none);
-    - ``cd``: per finger in contact, its smallest surface distance clipped at 0, averaged over
-      the fingers in contact (NaN where no finger is);
-    - ``spd``: the largest ``δ - d`` (clipped at 0) between surface points of different fingers
-      (subsampled), a proxy of self-penetration between non-adjacent links.
+    - ``pd``: penetration depth, :func:`dexflow.measures.penetration_depth` (the metrics
+      stage's ``pd_mm``);
+    - ``cd``: contact distance, :func:`dexflow.measures.contact_distance` (``cd_mm``);
+    - ``finger_overlap``: the largest ``δ - d`` (clipped at 0) between surface points of
+      different fingers (subsampled): what E_spen penalises, not the link self-penetration of
+      the metrics stage's ``spd_mm``.
     """
-    with torch.no_grad():
-        qt = torch.as_tensor(q, dtype=hand.dtype)
-        points, _ = hand.surface(qt)
-        inv = torch.as_tensor(np.linalg.inv(obj_pose), dtype=hand.dtype)
-        sd = sdf(_to_object(points, inv)).numpy()
+    distances, points = surface_distances(hand, q, obj_pose, sdf)
     masks = list(hand.finger_point_masks.values())
-    per_finger = np.stack([np.where(m, sd, np.inf).min(axis=1) for m in masks], axis=1)
-    cd = np.where(contact, np.clip(per_finger, 0, None), np.nan)
-    counted = contact.sum(axis=1)
-    cd_frame = np.where(counted > 0, np.nansum(cd, axis=1) / np.maximum(counted, 1), np.nan)
-    spd = np.zeros(len(q))
-    pts = points.numpy()
+    per_finger = np.stack([np.where(m, distances, np.inf).min(axis=1) for m in masks], axis=1)
+    overlap = np.zeros(len(q))
     rng = np.random.default_rng(0)
     picks = [
         rng.choice(np.flatnonzero(m), min(48, m.sum()), replace=False) for m in masks if m.any()
     ]
     for i in range(len(picks)):
         for j in range(i + 1, len(picks)):
-            d = np.linalg.norm(pts[:, picks[i], None] - pts[:, None, picks[j]], axis=-1).min(
-                axis=(1, 2)
-            )
-            spd = np.maximum(spd, np.clip(spen_delta_m - d, 0, None))
-    return {"pd": np.clip(-sd.min(axis=1), 0, None), "cd": cd_frame, "spd": spd}
+            d = np.linalg.norm(points[:, picks[i], None] - points[:, None, picks[j]], axis=-1)
+            overlap = np.maximum(overlap, np.clip(spen_delta_m - d.min(axis=(1, 2)), 0, None))
+    return {
+        "pd": penetration_depth(distances),
+        "cd": contact_distance(per_finger, contact),
+        "finger_overlap": overlap,
+    }
 
 
 def refine_trajectory(
@@ -218,8 +202,7 @@ def release_hand(
     Returns:
         (T, dof) released trajectory within the joint limits, tendon ties exact.
     """
-    coupled = set(hand._coupled.tolist())
-    free = torch.as_tensor([j for j in range(hand.dof) if j not in coupled])
+    free = torch.as_tensor(hand.free_joints)
     q0 = torch.as_tensor(q_init, dtype=hand.dtype)
     ref = q0 if reference is None else torch.as_tensor(reference, dtype=hand.dtype)
     with torch.no_grad():
@@ -316,12 +299,12 @@ def _refine_finger(
     """Optimise one finger's joints in every frame where it is in contact (updates ``q``)."""
     fingers = list(hand.spec.fingers)
     lower, upper = hand.lower, hand.upper
-    coupled = set(hand._coupled.tolist())
+    free = set(hand.free_joints)
     f = fingers.index(name)
     frames = np.flatnonzero(contact[:, f])
     if len(frames) == 0:
         return
-    joints = [j for j in hand.fingers[name] if j not in coupled]
+    joints = [j for j in hand.fingers[name] if j in free]
     if params.refine_base:
         joints = list(range(6)) + joints
     mine = hand.finger_point_masks[name]
@@ -404,89 +387,74 @@ def _blend(hand: RobotHand, q_init: np.ndarray, q: np.ndarray, sigma: float) -> 
     return hand.clamp(hand.apply_couplings(out)).numpy()
 
 
-def run_refine(params, retarget_root, contact_root, aligned_root, out_root) -> dict:
+def run_refine(params: PipelineParams, layout: Layout) -> dict:
     """Stage runner: refine every retargeted sequence with its contacts."""
-    from dexflow.config import project_root
-    from dexflow.io.atomic import save_npz
-    from dexflow.io.sequence import load_sequence
-    from dexflow.measures import rms_acceleration
-    from dexflow.resume import StageOutput
-
-    retarget_root, contact_root = Path(retarget_root), Path(contact_root)
-    aligned_root, out_root = Path(aligned_root), Path(out_root)
+    source, contacts, aligned = layout.retarget("dexflow"), layout.contact, layout.scale_align
+    out = layout.refine
     stage = StageOutput(
-        out_root,
+        out,
         "refine",
         {"hand": params.hand, "refine": params.refine},
-        inputs=(retarget_root, contact_root, aligned_root),
+        inputs=(source, contacts, aligned),
     )
     files = stage.start()
-    spec, base_dir = params.hand, project_root() / "conf" / "hand"
+    spec, base_dir = params.hand, layout.hand_dir
     rp = params.refine
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
         hand = cached_hand(spec, base_dir)
-        seq = load_sequence(aligned_root / "sequences" / path.name, data_root=aligned_root)
-        with np.load(path) as data:
-            q0 = data["q"]
-        with np.load(contact_root / "sequences" / path.name) as data:
-            contact = data["final"]
-            cmap = {k: data[k] for k in data.files if k.startswith("map_")}
-        sdf = TorchSDF(SignedDistanceGrid.load((aligned_root / seq.obj_mesh).parent / "sdf.npz"))
+        seq = load_sequence(aligned.sequence(path), data_root=aligned.root)
+        q0 = read_trajectory(path, hand.joint_names, frames=seq.num_frames).q
+        found = read_contact(contacts.sequence(path), list(hand.spec.fingers), seq.num_frames)
+        contact, cmap = found.final, found.contact_map
+        grid = ObjectAssets(aligned.object_of(seq.obj_mesh)).sdf()
         start = time.perf_counter()
-        q1, e0, e1 = refine_trajectory(hand, q0, seq.obj_pose, sdf, contact, cmap, rp)
+        q1, e0, e1 = refine_trajectory(hand, q0, seq.obj_pose, TorchSDF(grid), contact, cmap, rp)
         seconds = time.perf_counter() - start
-        before = hand_object_measures(hand, q0, seq.obj_pose, sdf, contact, rp.spen_delta_m)
-        after = hand_object_measures(hand, q1, seq.obj_pose, sdf, contact, rp.spen_delta_m)
-        save_npz(
-            out_root / "sequences" / path.name,
-            {
-                "q": q1,
-                "joint_names": np.array(hand.joint_names),
-                "energy_before": e0,
-                "energy_after": e1,
-                **{f"{k}_before_m": v for k, v in before.items()},
-                **{f"{k}_after_m": v for k, v in after.items()},
-            },
-        )
+        before = hand_object_measures(hand, q0, seq.obj_pose, grid, contact, rp.spen_delta_m)
+        after = hand_object_measures(hand, q1, seq.obj_pose, grid, contact, rp.spen_delta_m)
+        arrays = {
+            "energy_before": e0,
+            "energy_after": e1,
+            **{f"{k}_before_m": v for k, v in before.items()},
+            **{f"{k}_after_m": v for k, v in after.items()},
+        }
+        write_trajectory(out.sequence(path), Trajectory(q1, hand.joint_names, arrays))
 
-        def mm(values):
-            values = values[np.isfinite(values)]
-            return float(values.mean() * 1000) if len(values) else 0.0
+        stats = {"frames": len(q0), "seconds": seconds}
+        for key in ("pd", "cd", "finger_overlap"):
+            stats[f"{key}_before_mm"] = finite_mean(before[key]) * 1000
+            stats[f"{key}_after_mm"] = finite_mean(after[key]) * 1000
+        stats["rms_acc_before"] = rms_acceleration(q0[:, 6:], seq.fps)
+        stats["rms_acc_after"] = rms_acceleration(q1[:, 6:], seq.fps)
+        return stats
 
-        out = {"frames": len(q0), "seconds": seconds}
-        for key in ("pd", "cd", "spd"):
-            out[f"{key}_before_mm"], out[f"{key}_after_mm"] = mm(before[key]), mm(after[key])
-        out["rms_acc_before"] = rms_acceleration(q0[:, 6:], seq.fps)
-        out["rms_acc_after"] = rms_acceleration(q1[:, 6:], seq.fps)
-        return out
-
-    results = stage.map(one, files, params.run)
-    sequences = {r.item.stem: r.entry() for r in results}
-    ok = [s for s in sequences.values() if s["status"] == "ok"]
-    summary = {
-        "stage": "refine",
-        "num_sequences": len(files),
-        "num_ok": len(ok),
-        "num_failed": len(files) - len(ok),
-        "num_frames": sum(s["frames"] for s in ok),
-    }
-    for key in (
-        "pd_before_mm",
-        "pd_after_mm",
-        "cd_before_mm",
-        "cd_after_mm",
-        "spd_before_mm",
-        "spd_after_mm",
-        "rms_acc_before",
-        "rms_acc_after",
-    ):
-        summary[key] = float(np.mean([s[key] for s in ok])) if ok else float("nan")
-    seconds = sum(s.pop("seconds") for s in ok)
-    summary["sequences"] = dict(sorted(sequences.items()))
+    tally = stage.run(one, files, params.run)
+    summary = tally.counts("refine")
+    for key in _SUMMARY_KEYS:  # like the metrics stage: over sequences where it is defined
+        summary[key] = finite_mean([s[key] for s in tally.ok])
+    seconds = sum(s.pop("seconds") for s in tally.ok)
+    summary["sequences"] = dict(sorted(tally.sequences.items()))
     stage.finish(summary)
-    return {
-        **summary,
-        "frames_per_second_one_core": summary["num_frames"] / seconds if seconds else 0.0,
-    }
+    speed = summary["num_frames"] / seconds if seconds else 0.0
+    return {**summary, "timing": {"frames_per_second_one_core": speed}}
+
+
+_SUMMARY_KEYS = ("pd_before_mm", "pd_after_mm", "cd_before_mm", "cd_after_mm",
+                 "finger_overlap_before_mm", "finger_overlap_after_mm", "rms_acc_before",
+                 "rms_acc_after")  # fmt: skip
+
+STAGE = StageSpec(
+    name="refine",
+    run=run_refine,
+    metric_keys=("num_sequences", "num_ok", "num_failed", "num_frames", *_SUMMARY_KEYS),
+    describe=lambda s: (
+        f"{s['num_ok']}/{s['num_sequences']} sequences; PD {s['pd_before_mm']:.2f} -> "
+        f"{s['pd_after_mm']:.2f} mm, CD {s['cd_before_mm']:.2f} -> {s['cd_after_mm']:.2f} mm, "
+        f"finger overlap {s['finger_overlap_before_mm']:.2f} -> "
+        f"{s['finger_overlap_after_mm']:.2f} mm, RMS joint acc "
+        f"{s['rms_acc_before']:.2f} -> {s['rms_acc_after']:.2f} rad/s^2; "
+        f"{s['timing']['frames_per_second_one_core']:.1f} frames/s per core"
+    ),
+)  # fmt: skip

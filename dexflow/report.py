@@ -17,12 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
+from dexflow.io.layout import Layout
+
 __all__ = [
     "PAPER",
     "Experiment",
     "collect_dvc",
     "collect_multirun",
     "write_ablation",
+    "write_project_summary",
     "write_summary",
 ]
 
@@ -81,6 +84,17 @@ def _save(fig, path: Path) -> None:
 
 
 # ---------------------------------------------------------------------------------- summary
+
+
+def write_project_summary(
+    layout: Layout, data_name: str | None = None, out_md: str | Path | None = None
+) -> Path:
+    """:func:`write_summary` on a project's files (``layout``): what the ``report`` stage and
+    ``dexflow report summary`` write (``out_md`` defaults to ``reports/summary.md``)."""
+    return write_summary(
+        layout.stage_metrics_dir, layout.metrics_table, layout.plots,
+        out_md or layout.summary_report, layout.figures, data_name=data_name,
+    )  # fmt: skip
 
 
 def write_summary(

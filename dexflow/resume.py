@@ -36,18 +36,22 @@ import hashlib
 import json
 import logging
 import shutil
+import time
 from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from dexflow.io.atomic import atomic_path, save_json
-from dexflow.io.sequence import stage_files
+from dexflow.io.layout import StageDir
 from dexflow.parallel import ItemResult, map_items
 
 if TYPE_CHECKING:
-    from dexflow.config import RunParams
+    from dexflow.params import RunParams
 
-__all__ = ["DONE_DIR", "STAGE_FILE", "StageOutput", "code_digest", "file_digest"]
+__all__ = ["DONE_DIR", "STAGE_FILE", "StageOutput", "Tally", "code_digest", "file_digest"]
 
 STAGE_FILE = ".stage.json"
 DONE_DIR = ".done"
@@ -165,14 +169,16 @@ class StageOutput:
 
     def __init__(
         self,
-        out_root: str | Path,
+        out_root: StageDir | str | Path,
         stage: str,
         params: Mapping[str, Any],
-        inputs: Iterable[str | Path],
+        inputs: Iterable[StageDir | str | Path],
     ) -> None:
-        self.out_root = Path(out_root)
+        self.out = _stage_dir(out_root)
+        self.out_root = self.out.root
         self.stage = stage
-        self.inputs = [Path(p) for p in inputs]
+        self.input_dirs = [_stage_dir(p) for p in inputs]
+        self.inputs = [d.root for d in self.input_dirs]
         self.params = _plain(dict(params))
 
     def fingerprint(self) -> dict:
@@ -191,7 +197,7 @@ class StageOutput:
         Raises:
             FileNotFoundError: the first input holds no ``sequences/*.npz``.
         """
-        files = stage_files(self.inputs[0])
+        files = self.input_dirs[0].sequence_files()
         fingerprint = _dumps(self.fingerprint())
         marker = self.out_root / STAGE_FILE
         try:
@@ -243,7 +249,7 @@ class StageOutput:
         items = list(items)
         names = [name(item) for item in items]
         if inputs is None:
-            files_of = [[root / "sequences" / f"{n}.npz" for root in self.inputs] for n in names]
+            files_of = [[d.sequence(n) for d in self.input_dirs] for n in names]
         else:
             files_of = [[Path(p) for p in inputs(item)] for item in items]
         digests = {n: _files_digest(files) for n, files in zip(names, files_of, strict=True)}
@@ -277,11 +283,58 @@ class StageOutput:
             for i, (item, key) in enumerate(zip(items, names, strict=True))
         ]
 
+    def run(self, func: Callable[[Path], dict], files: list[Path], run: int | RunParams) -> Tally:
+        """Map ``func`` over the sequence files (resuming) and tally the outcome: the part of
+        every stage runner that is the same in all of them."""
+        start = time.perf_counter()
+        results = self.map(func, files, run)
+        seconds = time.perf_counter() - start
+        return Tally({r.item.stem: r.entry() for r in results}, seconds)
+
     def finish(self, summary: dict) -> None:
         """Write ``summary.json``, then drop the bookkeeping: the run is complete."""
         save_json(self.out_root / "summary.json", summary)
         (self.out_root / STAGE_FILE).unlink(missing_ok=True)
         shutil.rmtree(self.out_root / DONE_DIR, ignore_errors=True)
+
+
+def _stage_dir(path: StageDir | str | Path) -> StageDir:
+    return path if isinstance(path, StageDir) else StageDir(Path(path))
+
+
+@dataclass
+class Tally:
+    """What a stage's map over sequences gave.
+
+    Attributes:
+        sequences: Per sequence name its summary entry: ``status`` (``ok`` or ``failed``), the
+            item's statistics or ``error``.
+        seconds: Wall-clock seconds of the map (reused items take none).
+    """
+
+    sequences: dict[str, dict]
+    seconds: float
+
+    @property
+    def ok(self) -> list[dict]:
+        """The entries of the sequences that succeeded, in name order."""
+        return [e for _, e in sorted(self.sequences.items()) if e["status"] == "ok"]
+
+    def counts(self, stage: str, frames_key: str = "frames") -> dict:
+        """The summary fields every stage has: its name, sequences in/ok/failed, frames."""
+        ok = self.ok
+        return {
+            "stage": stage,
+            "num_sequences": len(self.sequences),
+            "num_ok": len(ok),
+            "num_failed": len(self.sequences) - len(ok),
+            "num_frames": int(sum(e.get(frames_key, 0) for e in ok)),
+        }
+
+    def mean(self, key: str, default: float = float("nan")) -> float:
+        """Mean of a per-sequence statistic over the sequences that succeeded."""
+        values = [e[key] for e in self.ok]
+        return float(np.mean(values)) if values else default
 
 
 def _sweep(out_dir: Path, record_dir: Path, keep: set[str]) -> None:

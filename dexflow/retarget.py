@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -52,11 +52,17 @@ from scipy.spatial.transform import Rotation
 from dexflow.hands.jacobian import KeypointJacobian
 from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.human.cleaning import detect_bad_frames
-from dexflow.io.sequence import Sequence
+from dexflow.human.keypoints import FINGERTIPS
+from dexflow.io.artifacts import Trajectory, write_trajectory
+from dexflow.io.layout import Layout
+from dexflow.io.sequence import Sequence, load_sequence
+from dexflow.measures import fingertip_speeds, rms_acceleration, velocity_kl
+from dexflow.params import GlobalSearchParams, PipelineParams, RetargetParams
+from dexflow.resume import StageOutput
+from dexflow.runner import StageSpec
 
 __all__ = [
-    "GlobalSearchParams",
-    "RetargetParams",
+    "STAGE",
     "RetargetResult",
     "retarget_sequence",
 ]
@@ -64,38 +70,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 _PALM_MANO = (0, 1, 5, 9, 13, 17)
-
-
-@dataclass
-class GlobalSearchParams:
-    """nlopt global search used for initialisation (paper: GN_CRS2_LM)."""
-
-    mode: str = "first_frame"
-    algorithm: str = "GN_CRS2_LM"
-    max_evals: int = 400
-    seed: int = 0
-
-
-@dataclass
-class RetargetParams:
-    """Stage ``retarget`` (``retarget`` in params.yaml). Weights are relative to metres²."""
-
-    method: str = "dexflow"
-    alpha: float = 0.0002
-    lambda_diff: float = 0.01
-    gamma_pred: float = 0.05
-    window: int = 0
-    base_sigma_m: float = 0.05
-    base_sigma_rad: float = 0.5
-    robust_delta_m: float = 0.02
-    iterations: int = 30
-    tolerance: float = 1e-3
-    global_search: GlobalSearchParams = field(default_factory=GlobalSearchParams)
-    recover_error_m: float = 0.03
-    recover_factor: float = 3.0
-    max_recoveries: int = 5
-    jump_threshold_m: float = 0.08
-    lowpass_hz: float = 0.0
 
 
 @dataclass
@@ -140,22 +114,8 @@ class _Problem:
 
     def __init__(self, hand: RobotHand, params: RetargetParams, fps: float) -> None:
         self.hand, self.params = hand, params
-        dof = hand.dof
-        coupled = {int(i) for i in hand._coupled}
-        self.free = np.array([i for i in range(dof) if i not in coupled])
-        a = np.zeros((dof, len(self.free)))
-        a[self.free, np.arange(len(self.free))] = 1.0
-        b = np.zeros(dof)
-        for dep, lead, ratio, off in zip(
-            hand._coupled.tolist(),
-            hand._leader.tolist(),
-            hand._ratio.tolist(),
-            hand._coupling_offset.tolist(),
-            strict=True,
-        ):
-            a[dep, np.flatnonzero(self.free == lead)[0]] = ratio
-            b[dep] = off
-        self.a, self.b = a, b
+        self.free = np.array(hand.free_joints)
+        self.a, self.b = hand.coupling_affine()
         lower, upper = hand.lower.numpy(), hand.upper.numpy()
         self.lower, self.upper = lower[self.free], upper[self.free]
         sigma = np.concatenate(
@@ -167,6 +127,7 @@ class _Problem:
         )
         inv_cov = np.diag(1.0 / sigma**2)
         # Temporal terms in free coordinates: velocity and acceleration weights (n x n).
+        a, dof = self.a, hand.dof
         self.w_vel = params.alpha * a.T @ a
         self.w_acc = a.T @ (params.lambda_diff * inv_cov + params.gamma_pred * np.eye(dof)) @ a
         self.jacobian = KeypointJacobian(hand)
@@ -519,43 +480,36 @@ def _solve_position(problem, x0, human, observed, params, stats) -> np.ndarray:
 
 
 def save_result(path: str | Path, result: RetargetResult, seq: Sequence) -> None:
-    """Write a result as ``.npz`` (q with joint names, keypoints, errors, masks, stats)."""
-    from dexflow.io.atomic import save_npz
-
-    save_npz(
-        path,
-        {
-            "q": result.q,
-            "joint_names": np.array(result.joint_names),
-            "keypoints_robot": result.keypoints_robot,
-            "keypoints_human": result.keypoints_human,
-            "keypoint_error_m": result.error_m,
-            "observed": result.observed,
-            "lost": result.lost,
-            "fps": np.array(seq.fps),
-            "global_searches": np.array(result.stats["global_searches"]),
-            "recoveries": np.array(result.stats["recoveries"]),
-            "evaluations": np.array(result.stats["evaluations"]),
-        },
-    )
+    """Write a result as a :class:`~dexflow.io.artifacts.Trajectory` (q with joint names, plus
+    keypoints, errors, masks, stats)."""
+    arrays = {
+        "keypoints_robot": result.keypoints_robot,
+        "keypoints_human": result.keypoints_human,
+        "keypoint_error_m": result.error_m,
+        "observed": result.observed,
+        "lost": result.lost,
+        "fps": np.array(seq.fps),
+        "global_searches": np.array(result.stats["global_searches"]),
+        "recoveries": np.array(result.stats["recoveries"]),
+        "evaluations": np.array(result.stats["evaluations"]),
+    }
+    write_trajectory(path, Trajectory(result.q, list(result.joint_names), arrays))
 
 
 def _sequence_metrics(result: RetargetResult, hand: RobotHand, seq: Sequence) -> dict:
-    from dexflow.human.keypoints import FINGERTIPS
-    from dexflow.measures import fingertip_speeds, rms_acceleration, velocity_kl
-
+    """The stage's per-sequence statistics. ``keypoint_error_mm`` and ``rms_acc`` are the
+    metrics stage's definitions (:mod:`dexflow.metrics`); ``*_gt`` compare with the demo's
+    clean, true hand (only there). The velocity KL against the observed hand is the metrics
+    stage's alone (pooled over sequences)."""
     fps = seq.fps
     tips = [i for i, m in enumerate(hand.mano_indices) if m in FINGERTIPS]
     observed = result.observed
-    human = fingertip_speeds(result.keypoints_human[:, tips], fps, observed)
-    robot = fingertip_speeds(result.keypoints_robot[:, tips], fps, observed)
     out = {
         "frames": len(result.q),
         "observed_frames": int(observed.sum()),
         "lost_frames": int(result.lost.sum()),
         "keypoint_error_mm": float(np.nanmean(result.error_m) * 1000),
-        "rms_joint_acc": rms_acceleration(result.q[:, 6:], fps),
-        "velocity_kl": velocity_kl(human, robot),
+        "rms_acc": rms_acceleration(result.q[:, 6:], fps),
         "global_searches": int(result.stats["global_searches"]),
         "recoveries": int(result.stats["recoveries"]),
     }
@@ -565,47 +519,39 @@ def _sequence_metrics(result: RetargetResult, hand: RobotHand, seq: Sequence) ->
             np.linalg.norm(result.keypoints_robot - truth, axis=-1).mean(axis=-1)[observed].mean()
             * 1000
         )
+        robot = fingertip_speeds(result.keypoints_robot[:, tips], fps, observed)
         out["velocity_kl_gt"] = velocity_kl(fingertip_speeds(truth[:, tips], fps, observed), robot)
     return out
 
 
-def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path) -> dict:
-    """Stage runner: every ``in_root/sequences/*.npz`` -> ``out_root/sequences/*.npz``.
+def run_retarget(params: PipelineParams, layout: Layout, method: str = "dexflow") -> dict:
+    """Stage runner: every sequence of ``layout.scale_align`` -> ``layout.retarget(method)``.
 
     Returns:
-        The summary (also ``out_root/summary.json``); ``seconds`` is wall-clock time and is
-        returned, not written.
+        The summary (also written to the stage's ``summary.json``), with the wall-clock speed
+        under ``timing`` (returned, not written there).
     """
-    from dataclasses import replace as dc_replace
-
-    from dexflow.config import project_root
-    from dexflow.io.sequence import load_sequence
-    from dexflow.resume import StageOutput
-
-    in_root, out_root = Path(in_root), Path(out_root)
-    rparams = dc_replace(params.retarget, method=method)
+    source, out = layout.scale_align, layout.retarget(method)
+    rparams = replace(params.retarget, method=method)
     stage = StageOutput(
-        out_root,
+        out,
         f"retarget {method}",
         {"seed": params.seed, "hand": params.hand, "retarget": rparams},
-        inputs=(in_root,),
+        inputs=(source,),
     )
     files = stage.start()
-    spec, base_dir = params.hand, project_root() / "conf" / "hand"
+    spec, base_dir = params.hand, layout.hand_dir
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
         hand = cached_hand(spec, base_dir)
-        seq = load_sequence(path, data_root=in_root)
+        seq = load_sequence(path, data_root=source.root)
         result = retarget_sequence(seq, hand, rparams)
-        save_result(out_root / "sequences" / path.name, result, seq)
+        save_result(out.sequence(path), result, seq)
         return _sequence_metrics(result, hand, seq)
 
-    start = time.perf_counter()
-    results = stage.map(one, files, params.run)
-    seconds = time.perf_counter() - start
-    sequences = {r.item.stem: r.entry() for r in results}
-    ok = [s for s in sequences.values() if s["status"] == "ok"]
+    tally = stage.run(one, files, params.run)
+    sequences, ok, seconds = tally.sequences, tally.ok, tally.seconds
     frames = sum(s["frames"] for s in ok)
 
     def mean(key):
@@ -621,8 +567,7 @@ def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path)
         "num_failed": len(files) - len(ok),
         "num_frames": frames,
         "keypoint_error_mm": mean("keypoint_error_mm"),
-        "rms_joint_acc": mean("rms_joint_acc"),
-        "velocity_kl": mean("velocity_kl"),
+        "rms_acc": mean("rms_acc"),
         **(
             {k: mean(k) for k in ("keypoint_error_gt_mm", "velocity_kl_gt")}
             if ok and "velocity_kl_gt" in ok[0]
@@ -631,4 +576,17 @@ def run_retarget(params, method: str, in_root: str | Path, out_root: str | Path)
         "sequences": dict(sorted(sequences.items())),
     }
     stage.finish(summary)
-    return {**summary, "seconds": seconds}
+    return {**summary, "timing": {"frames_per_second": frames / seconds if seconds else 0.0}}
+
+
+STAGE = StageSpec(
+    name="retarget",
+    run=run_retarget,
+    metric_keys=("num_sequences", "num_ok", "num_failed", "num_frames", "keypoint_error_mm",
+                 "rms_acc", "keypoint_error_gt_mm", "velocity_kl_gt"),
+    describe=lambda s: (
+        f"{s['num_ok']}/{s['num_sequences']} sequences ok, {s['num_frames']} frames, "
+        f"{s['timing']['frames_per_second']:.1f} frames/s, error {s['keypoint_error_mm']:.2f} mm, "
+        f"RMS joint acc {s['rms_acc']:.2f} rad/s^2"
+    ),
+)  # fmt: skip

@@ -55,7 +55,6 @@ import logging
 import shutil
 import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -64,14 +63,27 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from dexflow.errors import HandConfigError
-from dexflow.hands.robot import RobotHand, base_transform
+from dexflow.hands.robot import RobotHand, base_transform, cached_hand
+from dexflow.io.artifacts import (
+    SIMULATION_KEYS,
+    ObjectAssets,
+    SimulationResult,
+    read_contact,
+    read_trajectory,
+    write_simulation,
+)
+from dexflow.io.layout import Layout
+from dexflow.io.sequence import load_sequence
 from dexflow.measures import penetration_depth, surface_distances
 from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.params import PipelineParams, SimulateParams
+from dexflow.resume import StageOutput
+from dexflow.runner import StageSpec
 
 __all__ = [
     "DIRECTIONS",
+    "STAGE",
     "GraspWorld",
-    "SimulateParams",
     "object_parts",
     "run_simulate",
     "simulate_sequence",
@@ -86,35 +98,6 @@ _DROP_CHECK_EVERY = 10  # control steps between checks for a dropped object
 _FK_CHECK_TOL_M = 1e-4  # pybullet's link frames must match the kinematic model's
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass
-class SimulateParams:
-    """Stage ``simulate`` (``simulate`` in params.yaml)."""
-
-    control_dt_s: float = 1.0 / 60.0
-    substeps: int = 4
-    control_steps: int = 100
-    gravity: float = 9.8
-    object_mass_kg: float = 0.1
-    friction: float = 1.0
-    motor_force: float = 2.0
-    position_gain: float = 0.3
-    velocity_gain: float = 1.0
-    base_max_force: float = 1000.0
-    push_m: float = 0.005
-    contact_margin_m: float = 0.005
-    penetration_tol_m: float = 0.002
-    max_displacement_m: float = 0.05
-    max_rotation_deg: float = 15.0
-    drop_distance_m: float = 0.02
-    early_exit: bool = True
-    settle_steps: int = 20
-    stride: int = 5
-    early_stop: bool = True
-    max_frames: int = 0
-    massless_link_mass_kg: float = 0.002
-    massless_link_inertia_kgm2: float = 1e-7
 
 
 def object_parts(path: str | Path) -> list[np.ndarray]:
@@ -320,8 +303,7 @@ class GraspWorld:
         if not links:
             return q.copy(), penetration, []
         # Jacobian of the contact points by forward differences over the free hand joints
-        coupled = set(hand._coupled.tolist())
-        free = [j for j in range(6, hand.dof) if j not in coupled]
+        free = [j for j in hand.free_joints if j >= 6]
         step = 1e-6
         qs = np.repeat(q[None], len(free) + 1, axis=0)
         qs[np.arange(1, len(free) + 1), free] += step
@@ -567,14 +549,12 @@ def simulate_sequence(
                 found[key] = t
         if p.early_stop and found["contact"] is not None and found["bench"] is not None:
             break
-    keys = ("frame", "penetration_m", "parts_penetration_m", "pushed_links", "touching", "held",
-            "displacement_m", "rotation_deg", "tested", "contact", "bench")  # fmt: skip
     width = {"touching": len(world.hand.spec.fingers)} | dict.fromkeys(
         ("held", "displacement_m", "rotation_deg", "tested"), 6
     )
     arrays = {
         k: np.array([r[k] for r in rows]) if rows else np.zeros((0, width[k]) if k in width else 0)
-        for k in keys
+        for k in SIMULATION_KEYS
     }
     arrays["fingers"] = np.array(list(world.hand.spec.fingers))
     pen, parts = arrays["penetration_m"], arrays["parts_penetration_m"]
@@ -595,89 +575,85 @@ def simulate_sequence(
     return arrays, result
 
 
-def run_simulate(params, method: str, traj_root, contact_root, aligned_root, out_root) -> dict:
-    """Stage runner: the six-direction test on every trajectory under ``traj_root``.
+def run_simulate(params: PipelineParams, layout: Layout, label: str) -> dict:
+    """Stage runner: the six-direction test on every trajectory labelled ``label``.
 
     Args:
         params: Pipeline params (``hand``, ``simulate``, ``run``).
-        method: Label of the trajectories (baseline, retarget, refine).
-        traj_root: Stage output holding ``sequences/<name>.npz`` with ``q``.
-        contact_root: Stage contact's output (first contact of every sequence).
-        aligned_root: Stage scale_align's output (object poses, convex parts).
-        out_root: Where to write.
-    """
-    from dexflow.config import project_root
-    from dexflow.hands.robot import cached_hand
-    from dexflow.io.atomic import save_npz
-    from dexflow.io.sequence import load_sequence
-    from dexflow.resume import StageOutput
+        layout: The project's paths; the trajectories are ``layout.trajectory(label)``.
+        label: One of :data:`~dexflow.io.layout.TRAJECTORIES` (baseline, retarget, refine).
 
-    traj_root, contact_root = Path(traj_root), Path(contact_root)
-    aligned_root, out_root = Path(aligned_root), Path(out_root)
+    Returns:
+        The summary (also written to the stage's ``summary.json``), with the wall-clock speed
+        under ``timing`` (returned, not written there).
+    """
+    source, contacts, aligned = layout.trajectory(label), layout.contact, layout.scale_align
+    out = layout.simulate(label)
     stage = StageOutput(
-        out_root,
-        f"simulate {method}",
+        out,
+        f"simulate {label}",
         {"hand": params.hand, "simulate": params.simulate},
-        inputs=(traj_root, contact_root, aligned_root),
+        inputs=(source, contacts, aligned),
     )
     files = stage.start()
-    spec, base_dir, sp = params.hand, project_root() / "conf" / "hand", params.simulate
+    spec, base_dir, sp = params.hand, layout.hand_dir, params.simulate
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
         hand = cached_hand(spec, base_dir)
-        seq = load_sequence(aligned_root / "sequences" / path.name, data_root=aligned_root)
-        with np.load(path) as data:
-            q = data["q"]
-        if len(q) != len(seq.obj_pose):
-            raise ValueError(
-                f"{path}: {len(q)} frames of q but {len(seq.obj_pose)} object poses in "
-                f"{aligned_root / 'sequences' / path.name}"
-            )
-        with np.load(contact_root / "sequences" / path.name) as data:
-            any_contact = data["final"].any(axis=1)
-        first = int(np.argmax(any_contact)) if any_contact.any() else -1
+        seq = load_sequence(aligned.sequence(path), data_root=aligned.root)
+        q = read_trajectory(path, hand.joint_names, frames=seq.num_frames).q
+        found = read_contact(contacts.sequence(path), list(hand.spec.fingers), seq.num_frames)
         world = _world(hand, sp)
-        object_dir = (aligned_root / seq.obj_mesh).parent
-        world.set_object(object_dir / "convex.obj")
-        sdf = SignedDistanceGrid.load(object_dir / "sdf.npz")
+        assets = ObjectAssets(aligned.object_of(seq.obj_mesh))
+        world.set_object(assets.paths.convex)
         start = time.perf_counter()
-        arrays, result = simulate_sequence(world, q, seq.obj_pose, first, sdf)
+        rows, result = simulate_sequence(world, q, seq.obj_pose, found.first_contact, assets.sdf())
         result["seconds"] = time.perf_counter() - start
-        save_npz(out_root / "sequences" / path.name, arrays)
+        write_simulation(out.sequence(path), SimulationResult(rows, list(hand.spec.fingers)))
         return result
 
-    results = stage.map(one, files, params.run)
-    sequences = {r.item.stem: r.entry() for r in results}
-    ok = [s for s in sequences.values() if s["status"] == "ok"]
+    tally = stage.run(one, files, params.run)
+    ok = tally.ok
     seconds = sum(s.pop("seconds") for s in ok)
     evaluated = sum(s["evaluated"] for s in ok)
 
     def percent(key):
-        return float(100 * np.mean([s[key] for s in ok])) if ok else float("nan")
+        return 100 * tally.mean(key)
 
     summary = {
-        "stage": "simulate",
-        "method": method,
-        "num_sequences": len(files),
-        "num_ok": len(ok),
-        "num_failed": len(files) - len(ok),
+        **tally.counts("simulate"),
+        "method": label,
         "frames_evaluated": evaluated,
         "ssr": percent("success_contact"),
         "ssr_bench": percent("success_bench"),
         "ssr_raw": percent("success_contact_raw"),
         "ssr_bench_raw": percent("success_bench_raw"),
-        "penetration_mean_mm": float(np.mean([s["penetration_mean_mm"] for s in ok]))
-        if ok else float("nan"),
-        "over_tolerance": float(np.mean([s["over_tolerance"] for s in ok])) if ok else 0.0,
-        "parts_penetration_mean_mm": float(np.mean([s["parts_penetration_mean_mm"] for s in ok]))
-        if ok else float("nan"),
-        "parts_over_tolerance": float(np.mean([s["parts_over_tolerance"] for s in ok]))
-        if ok else 0.0,
-        "sequences": dict(sorted(sequences.items())),
-    }  # fmt: skip
+        "penetration_mean_mm": tally.mean("penetration_mean_mm"),
+        "over_tolerance": tally.mean("over_tolerance", 0.0),
+        "parts_penetration_mean_mm": tally.mean("parts_penetration_mean_mm"),
+        "parts_over_tolerance": tally.mean("parts_over_tolerance", 0.0),
+        "sequences": dict(sorted(tally.sequences.items())),
+    }
     stage.finish(summary)
-    return {**summary, "frames_per_second_one_core": evaluated / seconds if seconds else 0.0}
+    speed = evaluated / seconds if seconds else 0.0
+    return {**summary, "timing": {"frames_per_second_one_core": speed}}
+
+
+STAGE = StageSpec(
+    name="simulate",
+    run=run_simulate,
+    metric_keys=("num_sequences", "num_ok", "num_failed", "frames_evaluated", "ssr", "ssr_bench",
+                 "ssr_raw", "ssr_bench_raw", "penetration_mean_mm", "over_tolerance",
+                 "parts_penetration_mean_mm", "parts_over_tolerance"),
+    describe=lambda s: (
+        f"{s['num_ok']}/{s['num_sequences']} sequences; SSR {s['ssr']:.1f} % (contact), "
+        f"{s['ssr_bench']:.1f} % (DexGraspBench); without the penetration tolerance "
+        f"{s['ssr_raw']:.1f} % / {s['ssr_bench_raw']:.1f} %; {s['frames_evaluated']} frames, "
+        f"mean starting penetration {s['penetration_mean_mm']:.2f} mm; "
+        f"{s['timing']['frames_per_second_one_core']:.2f} frames/s per core"
+    ),
+)  # fmt: skip
 
 
 _WORLDS: dict[int, GraspWorld] = {}

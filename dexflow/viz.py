@@ -30,9 +30,12 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from dexflow.errors import DexflowError, SequenceFormatError
+from dexflow.errors import DexflowError
 from dexflow.hands.robot import RobotHand
 from dexflow.human.keypoints import FINGER_KEYPOINTS, FINGERS, NUM_KEYPOINTS, WRIST
+from dexflow.io.artifacts import ContactResult, read_contact, read_trajectory
+from dexflow.io.layout import Layout
+from dexflow.io.layout import project_root as find_project_root
 from dexflow.io.sequence import Sequence, load_sequence
 
 __all__ = [
@@ -52,14 +55,12 @@ log = logging.getLogger(__name__)
 # Per finger, the keypoint chain drawn as one line strip: wrist, then the finger from the palm out.
 HAND_BONES: tuple[tuple[int, ...], ...] = tuple((WRIST, *FINGER_KEYPOINTS[f]) for f in FINGERS)
 
-# Trajectory choice -> (directory below the project, DVC stage that writes it).
-TRAJECTORIES: dict[str, tuple[str, str]] = {
-    "refine": ("data/refine", "refine"),
-    "retarget": ("data/retarget/dexflow", "retarget@dexflow"),
-    "baseline": ("data/retarget/position", "retarget@position"),
+# Trajectory choice (a label of dexflow.io.layout.TRAJECTORIES) -> the DVC stage that writes it.
+TRAJECTORIES: dict[str, str] = {
+    "refine": "refine",
+    "retarget": "retarget@dexflow",
+    "baseline": "retarget@position",
 }
-_SEQUENCES = ("data/scale_align", "scale_align")
-_CONTACT = ("data/contact", "contact")
 
 _APPLICATION_ID = "dexflow"
 _ID_NAMESPACE = uuid.UUID("6f1c8f2e-3d5b-4f7a-9a53-0d6c1e2b7a40")  # fixed: ids depend on names only
@@ -115,14 +116,14 @@ def _require(path: Path, stage: str) -> Path:
 def resolve_inputs(
     name_or_path: str | Path, trajectory: str = "refine", project_root: str | Path = "."
 ) -> RecordingInputs:
-    """Find the files of one sequence in a project's ``data/``.
+    """Find the files of one sequence in a project's outputs (:class:`Layout`).
 
     Args:
         name_or_path: A sequence name (``025_mug__00_power``) or the path of a sequence ``.npz``
             (its mesh is then looked up relative to the folder above its ``sequences/``).
         trajectory: ``refine``, ``retarget`` (DexFlow before refinement) or ``baseline``
             (the per-frame position retargeting).
-        project_root: The directory holding ``data/``.
+        project_root: The project directory.
 
     Raises:
         ValueError: ``trajectory`` is not one of :data:`TRAJECTORIES`.
@@ -133,7 +134,7 @@ def resolve_inputs(
         raise ValueError(
             f"unknown trajectory {trajectory!r}; expected one of {', '.join(TRAJECTORIES)}"
         )
-    root = Path(project_root)
+    layout = Layout(Path(project_root))
     text = str(name_or_path)
     if text.endswith(".npz") or Path(text).is_file():
         seq_path = Path(text)
@@ -145,78 +146,27 @@ def resolve_inputs(
             raise MissingInputError(f"{seq_path}: no such sequence file")
     else:
         name = text
-        data_root = root / _SEQUENCES[0]
-        seq_path = _require(data_root / "sequences" / f"{name}.npz", _SEQUENCES[1])
-    folder, stage = TRAJECTORIES[trajectory]
-    traj_path = _require(root / folder / "sequences" / f"{name}.npz", stage)
-    contact_path = root / _CONTACT[0] / "sequences" / f"{name}.npz"
-    return RecordingInputs(name, seq_path, data_root, traj_path, contact_path)
+        data_root = layout.scale_align.root
+        seq_path = _require(layout.scale_align.sequence(name), "scale_align")
+    traj_path = _require(layout.trajectory(trajectory).sequence(name), TRAJECTORIES[trajectory])
+    return RecordingInputs(name, seq_path, data_root, traj_path, layout.contact.sequence(name))
 
 
-def load_trajectory(path: str | Path, hand: RobotHand, num_frames: int) -> np.ndarray:
-    """Read ``q`` from a retarget or refine output, in the hand's joint order.
-
-    Args:
-        path: The ``.npz`` with ``q (T, dof)`` and, optionally, ``joint_names (dof,)``.
-        hand: The hand the trajectory is for.
-        num_frames: T of the sequence.
-
-    Returns:
-        (T, dof) joint configurations ordered as ``hand.joint_names``.
+def load_contact(path: str | Path, hand: RobotHand, num_frames: int) -> ContactResult | None:
+    """Stage contact's result for a recording; None (and a warning) if the file is absent.
 
     Raises:
-        SequenceFormatError: ``q`` is missing, has the wrong shape, or its joints are not the
-            hand's (e.g. ``params.yaml`` names another hand than the one the data was made for).
-    """
-    path = Path(path)
-    with np.load(path, allow_pickle=False) as data:
-        if "q" not in data.files:
-            raise SequenceFormatError(path, "q", "a required field", f"fields {data.files}")
-        q = np.asarray(data["q"], dtype=np.float64)
-        names = [str(n) for n in data["joint_names"]] if "joint_names" in data.files else None
-    if names is not None and names != hand.joint_names:
-        missing = sorted(set(hand.joint_names) - set(names))
-        if missing or len(names) != len(hand.joint_names):
-            raise SequenceFormatError(
-                path,
-                "joint_names",
-                f"the {hand.dof} joints of hand '{hand.spec.name}' (params.yaml)",
-                f"{len(names)} joints, missing {missing[:6]}",
-            )
-        q = q[:, [names.index(n) for n in hand.joint_names]]
-    if q.shape != (num_frames, hand.dof):
-        raise SequenceFormatError(
-            path, "q", f"shape ({num_frames}, {hand.dof})", f"shape {tuple(q.shape)}"
-        )
-    return q
-
-
-def load_contact(path: str | Path, num_frames: int) -> tuple[np.ndarray, list[str]] | None:
-    """Read ``final (T, F)`` and ``fingers (F,)`` of the contact stage; None if the file is absent.
-
-    Raises:
-        SequenceFormatError: the file exists but ``final`` or ``fingers`` are missing or wrong.
+        ArtifactError: the file exists but does not fit the hand or the sequence.
     """
     path = Path(path)
     if not path.is_file():
         log.warning(
-            "%s: no contact file (written by the DVC stage '%s'); recording without contact "
-            "colours",
+            "%s: no contact file (written by the DVC stage 'contact'); recording without "
+            "contact colours",
             path,
-            _CONTACT[1],
         )
         return None
-    with np.load(path, allow_pickle=False) as data:
-        for key in ("final", "fingers"):
-            if key not in data.files:
-                raise SequenceFormatError(path, key, "a required field", f"fields {data.files}")
-        final = np.asarray(data["final"], dtype=bool)
-        fingers = [str(f) for f in data["fingers"]]
-    if final.shape != (num_frames, len(fingers)):
-        raise SequenceFormatError(
-            path, "final", f"shape ({num_frames}, {len(fingers)})", f"shape {final.shape}"
-        )
-    return final, fingers
+    return read_contact(path, list(hand.spec.fingers), num_frames)
 
 
 def _entity(part: str) -> str:
@@ -464,23 +414,23 @@ def record_sequence(
             DVC stage that writes it). A missing contact file only logs a warning.
         SequenceFormatError: an input file has the wrong fields or shapes.
     """
-    from dexflow.config import project_root as find_project_root
     from dexflow.objects.mesh import load_mesh
 
     root = Path(project_root) if project_root is not None else find_project_root()
+    layout = Layout(root)
     inputs = resolve_inputs(name_or_path, trajectory, root)
     if hand is None:
         from dexflow.config import load_params
         from dexflow.hands.robot import cached_hand
 
         params = load_params(root / "params.yaml")
-        hand = cached_hand(params.hand, root / "conf" / "hand")
+        hand = cached_hand(params.hand, layout.hand_dir)
     sequence = load_sequence(inputs.sequence, data_root=inputs.data_root)
-    q = load_trajectory(inputs.trajectory, hand, sequence.num_frames)
-    loaded = load_contact(inputs.contact, sequence.num_frames)
-    contact, fingers = loaded if loaded is not None else (None, None)
+    q = read_trajectory(inputs.trajectory, hand.joint_names, sequence.num_frames).q
+    loaded = load_contact(inputs.contact, hand, sequence.num_frames)
+    contact, fingers = (loaded.final, loaded.fingers) if loaded is not None else (None, None)
     default = inputs.name if trajectory == "refine" else f"{inputs.name}.{trajectory}"
-    out = Path(out_path) if out_path is not None else root / "reports" / "rerun" / default
+    out = Path(out_path) if out_path is not None else layout.recording(default)
     return write_recording(
         out,
         sequence,

@@ -5,16 +5,13 @@ from __future__ import annotations
 import logging
 import shutil
 import sys
-from pathlib import Path
 
 from dexflow.config import load_params
 from dexflow.data.demo import generate_demo
 from dexflow.io.atomic import save_json
+from dexflow.io.layout import Layout
 from dexflow.plots import plot_sequence_frames
 
-OUT = "data/demo"
-METRICS = "reports/metrics/demo.json"
-FIGURE = "reports/figures/demo.png"
 FIGURE_OBJECTS = (
     "025_mug",
     "024_bowl",
@@ -28,13 +25,14 @@ FIGURE_OBJECTS = (
 def main() -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     params = load_params("params.yaml")
-    out = Path(OUT)
+    layout = Layout.of(params.data.root)
+    out = layout.data.root
     if out.exists():
         shutil.rmtree(out)
     manifest = generate_demo(params.demo, out, params.run)
     entries = manifest["sequences"]
     save_json(
-        METRICS,
+        layout.stage_metrics("demo"),
         {
             "objects": len(manifest["objects"]),
             "sequences": manifest["num_sequences"],
@@ -46,7 +44,7 @@ def main() -> int:
     )
     names = [e["name"] for e in entries]
     shown = [n for n in names if n.split("__")[0] in FIGURE_OBJECTS] or names
-    plot_sequence_frames(out, shown[:: max(1, len(shown) // 6)][:6], FIGURE)
+    plot_sequence_frames(out, shown[:: max(1, len(shown) // 6)][:6], layout.figures / "demo.png")
     logging.info(
         "demo: %d sequences, %d frames in %s",
         manifest["num_sequences"],

@@ -6,16 +6,14 @@ import logging
 import sys
 
 from dexflow.config import load_params
-from dexflow.report import write_summary
+from dexflow.io.layout import Layout
+from dexflow.report import write_project_summary
 
 
 def main() -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     params = load_params("params.yaml")
-    out = write_summary(
-        "reports/metrics", "data/metrics/sequences.csv", "reports/plots", "reports/summary.md",
-        "reports/figures", data_name=params.data.name,
-    )  # fmt: skip
+    out = write_project_summary(Layout.of(params.data.root), data_name=params.data.name)
     logging.info("report: wrote %s", out)
     return 0
 

@@ -417,7 +417,8 @@ def test_mano_joints_from_a_structurally_valid_fake_model(tmp_path):
 
 def test_converted_data_runs_through_the_pipeline_like_the_demo(tmp_path):
     from dexflow.align import run_scale_align
-    from dexflow.config import PipelineParams
+    from dexflow.io.layout import Layout
+    from dexflow.params import PipelineParams
     from dexflow.retarget import run_retarget
 
     n = 40
@@ -440,9 +441,10 @@ def test_converted_data_runs_through_the_pipeline_like_the_demo(tmp_path):
     from dexflow.hands.spec import load_hand_spec
 
     params.hand, _ = load_hand_spec("allegro")
-    aligned = run_scale_align(params, tmp_path / "data", tmp_path / "aligned")
+    layout = Layout.of(tmp_path / "data", root=tmp_path / "project")
+    aligned = run_scale_align(params, layout)
     assert aligned["num_ok"] == 1
-    summary = run_retarget(params, "dexflow", tmp_path / "aligned", tmp_path / "retarget")
+    summary = run_retarget(params, layout, "dexflow")
     assert summary["num_ok"] == 1 and summary["keypoint_error_mm"] < 40
 
 

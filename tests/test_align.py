@@ -10,9 +10,10 @@ import pytest
 import trimesh
 
 from dexflow.align import run_scale_align, scale_sequence
-from dexflow.config import PipelineParams
+from dexflow.io.layout import Layout
 from dexflow.io.sequence import load_sequence, save_sequence
 from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.params import PipelineParams
 
 from .conftest import make_sequence
 
@@ -55,8 +56,9 @@ def test_stage_precomputes_each_object_once_and_reports_bad_sequences(data_root)
     (seqs / "broken.npz").write_bytes(b"garbage")
     save_sequence(seqs / "no_mesh.npz", replace(make_sequence(10), obj_mesh="meshes/gone.obj"))
 
-    out = data_root / "aligned"
-    summary = run_scale_align(_params(), data_root, out)
+    layout = Layout.of(data_root, root=data_root / "project")
+    summary = run_scale_align(_params(), layout)
+    out = layout.scale_align.root
 
     assert summary["num_ok"] == 2 and summary["num_failed"] == 3
     status = summary["sequences"]
@@ -88,11 +90,11 @@ def test_backends_give_identical_outputs(data_root):
         save_sequence(
             data_root / "sequences" / f"s{i}.npz", make_sequence(10 + i), data_root=data_root
         )
-    run_scale_align(_params(), data_root, data_root / "seq")
-    run_scale_align(_params(backend="local", n_jobs=2), data_root, data_root / "par")
-    files = sorted(
-        p.relative_to(data_root / "seq") for p in (data_root / "seq").rglob("*") if p.is_file()
-    )
+    seq, par = Layout.of(data_root, data_root / "seq"), Layout.of(data_root, data_root / "par")
+    run_scale_align(_params(), seq)
+    run_scale_align(_params(backend="local", n_jobs=2), par)
+    seq_out, par_out = seq.scale_align.root, par.scale_align.root
+    files = sorted(p.relative_to(seq_out) for p in seq_out.rglob("*") if p.is_file())
     assert files
     for rel in files:
-        assert (data_root / "seq" / rel).read_bytes() == (data_root / "par" / rel).read_bytes(), rel
+        assert (seq_out / rel).read_bytes() == (par_out / rel).read_bytes(), rel

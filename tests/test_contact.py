@@ -7,9 +7,10 @@ import pytest
 import torch
 import trimesh
 
-from dexflow.contact import ContactParams, finger_distances, hysteresis, infer_frames, state_changes
+from dexflow.contact import finger_distances, hysteresis, infer_frames, state_changes
 from dexflow.hands import load_hand
 from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.params import ContactParams
 
 P = ContactParams()
 

@@ -5,13 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dexflow.data.demo import DemoConfig, generate_demo
+from dexflow.data.demo import generate_demo
 from dexflow.data.ycb_standins import STANDINS, build_standin
 from dexflow.human.cleaning import detect_bad_frames
 from dexflow.human.keypoints import FINGERTIPS
 from dexflow.human.model import HandShape, finger_capsules
 from dexflow.io.sequence import load_sequence
 from dexflow.objects.sdf import SignedDistanceGrid, signed_distance
+from dexflow.params import DemoConfig
 
 SMALL = dict(objects=["061_foam_brick"], sequences_per_object=2, min_frames=60, max_frames=70)
 NO_TEMPLATE = dict(template_start_probability=0.0, template_end_probability=0.0)

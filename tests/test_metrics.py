@@ -11,16 +11,15 @@ import torch
 import trimesh
 
 from dexflow.hands import load_hand
-from dexflow.measures import penetration_depth, surface_distances
-from dexflow.metrics import (
-    MetricsParams,
-    SelfCollision,
-    chamfer_per_frame,
+from dexflow.measures import (
     contact_distance,
+    penetration_depth,
     state_flicker,
-    trajectory_metrics,
+    surface_distances,
 )
+from dexflow.metrics import SelfCollision, chamfer_per_frame, trajectory_metrics
 from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.params import MetricsParams
 from dexflow.report import (
     Experiment,
     collect_dvc,

@@ -11,7 +11,8 @@ from scipy.spatial import cKDTree
 from dexflow.contact import _contact_map, finger_distances
 from dexflow.hands import load_hand
 from dexflow.objects.sdf import SignedDistanceGrid
-from dexflow.refine import RefineParams, TorchSDF, energy_terms, refine_trajectory
+from dexflow.params import RefineParams
+from dexflow.refine import TorchSDF, energy_terms, refine_trajectory
 
 FRAMES = 3
 

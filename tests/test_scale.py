@@ -15,13 +15,14 @@ import pytest
 import trimesh
 
 from dexflow.align import run_scale_align
-from dexflow.config import PipelineParams, RunParams
 from dexflow.contact import run_contact
 from dexflow.errors import ConfigError
 from dexflow.hands import load_hand
 from dexflow.hands.spec import load_hand_spec
+from dexflow.io.layout import Layout
 from dexflow.io.sequence import save_sequence
 from dexflow.parallel import RAY_MISSING, map_items
+from dexflow.params import PipelineParams, RunParams
 from dexflow.resume import DONE_DIR, STAGE_FILE, StageOutput
 
 from .conftest import make_sequence
@@ -232,26 +233,34 @@ def contact_inputs(tmp_path_factory):
     """scale_align output for four sequences and a fake retargeting of each, plus one whose
     joint names are not the hand's (it must fail alone)."""
     root = _box_inputs(tmp_path_factory.mktemp("scale"), 5)
-    aligned = root / "aligned"
-    assert run_scale_align(_params(), root, aligned)["num_ok"] == 5
+    layout = Layout.of(root, root=root / "project")
+    assert run_scale_align(_params(), layout)["num_ok"] == 5
     hand = load_hand("allegro")
-    retarget = root / "retarget"
-    (retarget / "sequences").mkdir(parents=True)
+    retarget = layout.retarget("dexflow")
+    retarget.sequences_dir.mkdir(parents=True)
     for i in range(5):
         q = hand.zero(10 + i).numpy()
         q[:, 6:] += np.linspace(0, 0.3, len(q))[:, None]  # fingers closing
         names = list(hand.joint_names) if i != 2 else [f"j{k}" for k in range(q.shape[1])]
-        np.savez(retarget / "sequences" / f"s{i}.npz", q=q, joint_names=np.array(names))
-    return retarget, aligned
+        np.savez(retarget.sequence(f"s{i}"), q=q, joint_names=np.array(names))
+    return layout
+
+
+def _contact_project(inputs: Layout, name: str) -> Layout:
+    """A project of its own for one contact run, its inputs linked to ``inputs``'."""
+    layout = Layout.of(inputs.data_root, root=inputs.root.parent / name)
+    (layout.root / "data" / "retarget").mkdir(parents=True)
+    layout.scale_align.root.symlink_to(inputs.scale_align.root.resolve())
+    layout.retarget("dexflow").root.symlink_to(inputs.retarget("dexflow").root.resolve())
+    return layout
 
 
 @pytest.fixture(scope="module")
 def contact_reference(contact_inputs):
     """The contact stage run in this process, one sequence after another."""
-    retarget, aligned = contact_inputs
-    out = aligned.parent / "contact_reference"
-    run_contact(_params(), retarget, aligned, out)
-    return _files(out)
+    layout = _contact_project(contact_inputs, "contact_reference")
+    run_contact(_params(), layout)
+    return _files(layout.contact.root)
 
 
 @pytest.mark.parametrize("run", BACKENDS, ids=lambda r: r.backend)
@@ -259,35 +268,40 @@ def test_contact_backends_give_the_same_outputs_and_report_the_bad_sequence(
     run, contact_inputs, contact_reference
 ):
     _needs_ray(run)
-    retarget, aligned = contact_inputs
-    out = aligned.parent / f"contact_{run.backend}"
-    summary = run_contact(_params(run), retarget, aligned, out)
+    layout = _contact_project(contact_inputs, f"contact_{run.backend}")
+    summary = run_contact(_params(run), layout)
+    out = layout.contact.root
     assert summary["num_ok"] == 4 and summary["num_failed"] == 1
-    assert "do not match hand 'allegro'" in summary["sequences"]["s2"]["error"]
+    assert "joint_names do not match the hand" in summary["sequences"]["s2"]["error"]
     files = _files(out)
     assert sorted(files) == [f"sequences/s{i}.npz" for i in (0, 1, 3, 4)] + ["summary.json"]
-    assert files == contact_reference  # arrays and summary, byte for byte
+    # arrays and summary byte for byte (the summary's error names the file in this project)
+    summary_bytes = files["summary.json"].replace(
+        out.parents[1].name.encode(), b"contact_reference"
+    )
+    assert files | {"summary.json": summary_bytes} == contact_reference
 
 
 _KILLABLE = """
 import sys
 from pathlib import Path
 from dexflow.align import run_scale_align
+from dexflow.io.layout import Layout
 from tests.test_scale import _params
-run_scale_align(_params(sdf_spacing_m={spacing}), Path(sys.argv[1]), Path(sys.argv[2]))
+run_scale_align(_params(sdf_spacing_m={spacing}), Layout.of(Path(sys.argv[1]), Path(sys.argv[2])))
 """
 
 
-def _killed_midway(in_root: Path, out: Path, spacing: float) -> set[str]:
+def _killed_midway(in_root: Path, project: Path, spacing: float) -> set[str]:
     """Run scale_align in a subprocess and SIGKILL it once 1 to n-1 objects are done."""
     script = textwrap.dedent(_KILLABLE.format(spacing=spacing))
     proc = subprocess.Popen(
-        [sys.executable, "-c", script, str(in_root), str(out)],
+        [sys.executable, "-c", script, str(in_root), str(project)],
         cwd=ROOT,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
-    done_dir = out / DONE_DIR / "objects"
+    done_dir = Layout.of(in_root, project).scale_align.root / DONE_DIR / "objects"
     deadline = time.monotonic() + 120
     try:
         while time.monotonic() < deadline and proc.poll() is None:
@@ -304,25 +318,28 @@ def _killed_midway(in_root: Path, out: Path, spacing: float) -> set[str]:
 def test_a_killed_stage_resumes_without_recomputing_and_matches_an_uninterrupted_run(tmp_path):
     in_root = _box_inputs(tmp_path / "in", 5)
     spacing = 0.0025  # about 1 s per object: time to kill between the first and the last
-    out = tmp_path / "out"
-    done = _killed_midway(in_root, out, spacing)
+    project = Layout.of(in_root, tmp_path / "out")
+    out = project.scale_align.root
+    done = _killed_midway(in_root, project.root, spacing)
     assert 1 <= len(done) < 5, f"killed too late or too early: {done} done"
     assert not (out / "summary.json").exists()
     before = _stats(out)
 
-    summary = run_scale_align(_params(sdf_spacing_m=spacing), in_root, out)
+    summary = run_scale_align(_params(sdf_spacing_m=spacing), project)
     after = _stats(out)
     for key in done:  # the objects completed before the kill were not computed again
         files = [rel for rel in before if rel.startswith(f"objects/{key}/")]
         assert len(files) == 5 and all(after[rel] == before[rel] for rel in files), key
     assert summary["num_ok"] == 5
 
-    fresh = tmp_path / "fresh"
-    assert run_scale_align(_params(sdf_spacing_m=spacing), in_root, fresh) == summary
-    assert _files(out) == _files(fresh)  # no bookkeeping, no temporaries left: the same bytes
+    fresh = Layout.of(in_root, tmp_path / "fresh")
+    assert run_scale_align(_params(sdf_spacing_m=spacing), fresh) == summary
+    assert _files(out) == _files(
+        fresh.scale_align.root
+    )  # no bookkeeping, no temporaries left: the same bytes
 
     # Other params: everything is recomputed and nothing of the old run survives.
-    summary = run_scale_align(_params(sdf_spacing_m=spacing, surface_samples=128), in_root, out)
+    summary = run_scale_align(_params(sdf_spacing_m=spacing, surface_samples=128), project)
     assert summary["num_ok"] == 5
     recomputed = _stats(out)
     assert sorted(recomputed) == sorted(after)

@@ -321,7 +321,7 @@ def test_joblib_sweep_reuses_upstream_and_gives_each_job_its_metrics(project, tm
 
     found = collect_multirun(sweep)  # what `dexflow report ablation --multirun` reads
     assert [e.params["contact.dis_min_m"] for e in found] == [0.008, 0.012]
-    assert all(e.error is None and "contact.changes_per_finger_s_raw" in e.metrics for e in found)
+    assert all(e.error is None and "contact.flicker_raw" in e.metrics for e in found)
 
 
 @pytest.mark.slow

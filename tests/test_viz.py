@@ -12,8 +12,10 @@ import rerun as rr
 import trimesh
 
 from dexflow import cli, viz
-from dexflow.errors import SequenceFormatError
+from dexflow.errors import ArtifactError
 from dexflow.hands import load_hand
+from dexflow.io.artifacts import ContactResult, Trajectory, write_contact, write_trajectory
+from dexflow.io.layout import Layout
 from dexflow.io.sequence import save_sequence
 
 from .conftest import make_sequence
@@ -83,22 +85,22 @@ def _structure(path: Path) -> list[tuple]:
 
 def _project(tmp_path: Path, hand, num_frames: int = 12, contact: bool = True) -> Path:
     """A project with one sequence and the stage outputs a recording reads."""
-    data = tmp_path / "data"
-    root = data / "scale_align"
+    layout = Layout(tmp_path)
+    root = layout.scale_align.root
     (root / "meshes").mkdir(parents=True)
     trimesh.creation.box(extents=(0.06, 0.04, 0.08)).export(root / "meshes" / "box.obj")
-    save_sequence(root / "sequences" / f"{NAME}.npz", make_sequence(num_frames), data_root=root)
-    q = _q(hand, num_frames)
-    names = np.array(hand.joint_names)
-    for folder in ("refine", "retarget/dexflow"):
-        (data / folder / "sequences").mkdir(parents=True)
-        np.savez(data / folder / "sequences" / f"{NAME}.npz", q=q, joint_names=names)
+    save_sequence(layout.scale_align.sequence(NAME), make_sequence(num_frames), data_root=root)
+    trajectory = Trajectory(_q(hand, num_frames), list(hand.joint_names))
+    for label in ("refine", "retarget"):
+        write_trajectory(layout.trajectory(label).sequence(NAME), trajectory)
     if contact:
         final, fingers = _contact(hand, num_frames)
-        (data / "contact" / "sequences").mkdir(parents=True)
-        np.savez(
-            data / "contact" / "sequences" / f"{NAME}.npz", final=final, fingers=np.array(fingers)
-        )
+        empty = {k: np.zeros(0) for k in ("map_frame", "map_finger", "map_hand_index",
+                                          "map_hand_point", "map_object_point",
+                                          "map_object_normal")}  # fmt: skip
+        distance = np.where(final, 0.0, 0.05)
+        result = ContactResult(distance, final, final, fingers, 30.0, empty)
+        write_contact(layout.contact.sequence(NAME), result)
     return tmp_path
 
 
@@ -259,7 +261,7 @@ def test_trajectory_of_another_hand_is_refused(tmp_path, hand):
     root = _project(tmp_path, hand)
     traj = root / "data" / "refine" / "sequences" / f"{NAME}.npz"
     np.savez(traj, q=np.zeros((12, 30)), joint_names=np.array([f"j{i}" for i in range(30)]))
-    with pytest.raises(SequenceFormatError, match="joint_names"):
+    with pytest.raises(ArtifactError, match="joint_names"):
         viz.record_sequence(NAME, project_root=root, hand=hand)
 
 

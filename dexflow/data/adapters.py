@@ -67,6 +67,7 @@ from dexflow.io.atomic import save_json
 from dexflow.io.sequence import Sequence, save_sequence
 from dexflow.objects.mesh import load_mesh, write_obj
 from dexflow.objects.sdf import signed_distance
+from dexflow.io.layout import StageDir
 
 __all__ = ["ADAPTERS", "ConvertOptions", "DatasetLayoutError", "RawSequence", "convert"]
 
@@ -491,7 +492,7 @@ def write_sequence(raw: RawSequence, dst: Path, options: ConvertOptions) -> dict
         seq = mirror_sequence(seq, mirrored_rel)
     elif raw.side != "right":
         raise DatasetLayoutError(f"{raw.name}: side '{raw.side}'; expected 'right' or 'left'")
-    path = dst / "sequences" / f"{raw.source}_{raw.name}.npz"
+    path = StageDir(dst).sequence(f"{raw.source}_{raw.name}")
     save_sequence(path, seq, data_root=dst)
     gap = fingertip_surface_distance(seq, mesh)
     report = {
@@ -548,7 +549,7 @@ def convert(
     dst = Path(dst)
     for folder in sources:
         _need(folder, "source dataset folder")
-    (dst / "sequences").mkdir(parents=True, exist_ok=True)
+    StageDir(dst).sequences_dir.mkdir(parents=True, exist_ok=True)
     sequences: dict[str, dict] = {}
     for folder in sources:
         for raw in ADAPTERS[adapter](folder, options):

@@ -44,108 +44,15 @@ from dexflow.io.atomic import save_json
 from dexflow.io.sequence import Sequence, save_sequence
 from dexflow.objects.mesh import write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.params import DemoConfig
+from dexflow.io.layout import StageDir
 
 if TYPE_CHECKING:
-    from dexflow.config import RunParams
+    from dexflow.params import RunParams
 
-__all__ = ["DemoConfig", "generate_demo", "generate_object"]
+__all__ = ["generate_demo", "generate_object"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class DemoConfig:
-    """Size and realism of the demo dataset (``data.demo`` in params.yaml).
-
-    Attributes:
-        seed: Seed of everything random.
-        objects: Stand-in names (keys of ``STANDINS``); empty means all.
-        sequences_per_object: Sequences per object, cycling through its grasp types.
-        fps: Frame rate, Hz.
-        min_frames: Fewest frames in a sequence.
-        max_frames: Most frames in a sequence.
-        release_probability: Chance that a sequence ends by putting the object down.
-        noise_std_m: Tracker noise per coordinate (white and drifting parts each), metres.
-        inside_fraction: Share of contacting fingers annotated inside the object.
-        inside_depth_m: Range of that penetration, metres.
-        hover_fraction: Share of contacting fingers annotated hovering off the surface.
-        hover_gap_m: Range of the hover gap, metres.
-        hover_wobble_m: Amplitude of the slow wobble of a hovering finger, metres.
-        dropout_bursts: Mean number of NaN bursts per sequence (Poisson).
-        dropout_length: Range of frames per dropout burst.
-        tracking_loss_probability: Chance of a burst of "teleported" frames in a sequence.
-        tracking_loss_length: Range of frames per tracking-loss burst.
-        tracking_loss_distance_m: Range of how far away the lost hand is reported.
-        template_start_probability: Chance that a sequence starts with template frames.
-        template_start_length: Range of frames of that run.
-        template_end_probability: Chance that a sequence ends with template frames.
-        template_end_length: Range of frames of that run.
-        template_distance_m: Range of how far the template hand is from the real one.
-        template_max_fraction: Most of a sequence that template runs may take together.
-        hold_penetration_probability: Chance that the annotated hand sits too deep while holding.
-        hold_penetration_m: Range of how far it is shifted into the object along its approach.
-        hold_penetration_wobble_m: Amplitude of the slow wobble of that shift and of tip depths.
-        tip_inside_probability: Chance that pressing fingertips are annotated inside the object.
-        tip_depth_mean_m: Mean depth of the deepest fingertip keypoint (exponential), metres.
-        tip_depth_max_m: Largest such depth, metres.
-        hand_scale: Range of hand sizes (1 = average adult).
-        contact_tolerance_m: Skin-to-surface distance that counts as ground-truth contact.
-        sdf_spacing_m: Grid spacing of the signed distance used for synthesis.
-    """
-
-    seed: int = 0
-    objects: list[str] = field(default_factory=list)
-    sequences_per_object: int = 3
-    fps: float = 30.0
-    min_frames: int = 60
-    max_frames: int = 150
-    release_probability: float = 0.5
-    noise_std_m: float = 0.0015
-    inside_fraction: float = 0.35
-    inside_depth_m: tuple[float, float] = (0.003, 0.010)
-    hover_fraction: float = 0.3
-    hover_gap_m: tuple[float, float] = (0.003, 0.008)
-    hover_wobble_m: float = 0.003
-    dropout_bursts: float = 1.0
-    dropout_length: tuple[int, int] = (1, 4)
-    tracking_loss_probability: float = 0.4
-    tracking_loss_length: tuple[int, int] = (2, 5)
-    tracking_loss_distance_m: tuple[float, float] = (0.2, 0.5)
-    template_start_probability: float = 0.7
-    template_start_length: tuple[int, int] = (3, 25)
-    template_end_probability: float = 0.15
-    template_end_length: tuple[int, int] = (3, 12)
-    template_distance_m: tuple[float, float] = (0.6, 0.8)
-    template_max_fraction: float = 0.45
-    hold_penetration_probability: float = 0.5
-    hold_penetration_m: tuple[float, float] = (0.002, 0.01)
-    hold_penetration_wobble_m: float = 0.002
-    tip_inside_probability: float = 0.8
-    tip_depth_mean_m: float = 0.017
-    tip_depth_max_m: float = 0.03
-
-    def __post_init__(self) -> None:
-        from dexflow.errors import ConfigError
-
-        for key in ("template_start_probability", "template_end_probability",
-                    "hold_penetration_probability", "tip_inside_probability",
-                    "template_max_fraction"):  # fmt: skip
-            value = getattr(self, key)
-            if not 0.0 <= value <= 1.0:
-                raise ConfigError(f"demo.{key}: expected within [0, 1], found {value!r}")
-        for key in ("template_start_length", "template_end_length", "template_distance_m",
-                    "hold_penetration_m"):  # fmt: skip
-            lo, hi = getattr(self, key)
-            if not 0 <= lo <= hi:
-                raise ConfigError(f"demo.{key}: expected [lo, hi] with 0 <= lo <= hi, "
-                                  f"found {[lo, hi]!r}")  # fmt: skip
-        for key in ("tip_depth_mean_m", "tip_depth_max_m", "hold_penetration_wobble_m"):
-            if getattr(self, key) < 0:
-                raise ConfigError(f"demo.{key}: expected >= 0, found {getattr(self, key)!r}")
-
-    hand_scale: tuple[float, float] = (0.9, 1.1)
-    contact_tolerance_m: float = 0.001
-    sdf_spacing_m: float = 0.002
 
 
 def _min_jerk(n: int) -> np.ndarray:
@@ -508,7 +415,7 @@ def generate_object(name: str, cfg: DemoConfig, out_dir: str | Path) -> list[dic
         grasp = _grasp_with_fallback(sdf, grasp_types, k, rng, shape)
         seq_name = f"{name}__{k:02d}_{grasp.template.name}"
         seq, info = _make_sequence(seq_name, grasp, sdf, rng, cfg, shape)
-        save_sequence(out_dir / "sequences" / f"{seq_name}.npz", seq, data_root=out_dir)
+        save_sequence(StageDir(out_dir).sequence(seq_name), seq, data_root=out_dir)
         info["grasp_score"] = grasp.score
         entries.append(info)
     return entries

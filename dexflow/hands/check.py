@@ -107,7 +107,7 @@ def plot_zero_pose(hand: RobotHand, out_png: str | Path) -> Path:
     with torch.no_grad():
         points = hand.surface(q)[0][0].numpy()
         kp = hand.keypoints(q)[0].numpy()
-    link_of = np.asarray(hand._surface_link)
+    link_of = hand.surface_point_link_index
     fig = plt.figure(figsize=(12, 4.5))
     views = (("front", 0, -90), ("side", 0, 0), ("top", 89, -90))
     for i, (title, elev, azim) in enumerate(views):
@@ -152,7 +152,7 @@ def check_hand(
     summary = [
         f"hand '{hand.spec.name}': {hand.model.format.upper()} {hand.model.path}",
         f"  {len(hand.hand_joint_names)} joints (+6 floating-base), {len(hand.model.frames)} frames, "
-        f"{len(hand.model.geometries)} collision shapes, {hand._surface_local.shape[0]} surface points",
+        f"{len(hand.model.geometries)} collision shapes, {hand.num_surface_points} surface points",
         "  fingers: " + ", ".join(f"{f} ({len(j)} joints)" for f, j in hand.fingers.items()),
         f"  keypoints: {len(hand.spec.keypoints)} -> MANO {hand.mano_indices}",
         "  moved only by the floating base: "

@@ -60,7 +60,7 @@ class KeypointJacobian:
         ]
         self._pair_k = torch.tensor([k for k, _ in pairs], dtype=torch.long)  # keypoint moved ...
         self._pair_j = torch.tensor([j for _, j in pairs], dtype=torch.long)  # ... by this joint
-        self._offsets = hand._keypoint_offsets
+        self._offsets = hand.keypoint_offsets
 
     def __call__(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Keypoints (T, K, 3) and Jacobian (T, K, 3, dof) at ``q (T, dof)``."""

@@ -185,6 +185,57 @@ class RobotHand:
         """Link name of every surface point."""
         return [self.surface_links[i] for i in self._surface_link.tolist()]
 
+    @property
+    def surface_point_link_index(self) -> np.ndarray:
+        """(N,) index into :attr:`surface_links` of every surface point."""
+        return self._surface_link.cpu().numpy()
+
+    @property
+    def num_surface_points(self) -> int:
+        """N, the number of surface points :meth:`surface` returns per configuration."""
+        return int(self._surface_local.shape[0])
+
+    @property
+    def keypoint_offsets(self) -> torch.Tensor:
+        """(K, 3) offset of every keypoint in its link's frame (the hand config's ``offset``)."""
+        return self._keypoint_offsets
+
+    # ---------------------------------------------------------------------------- couplings
+
+    @property
+    def coupled_joints(self) -> list[int]:
+        """Indices into ``q`` of the joints a coupling sets from a leader (e.g. the ShadowHand's
+        tendon-driven J0 of each finger); :meth:`apply_couplings` overwrites them."""
+        return self._coupled.tolist()
+
+    @property
+    def free_joints(self) -> list[int]:
+        """Indices into ``q`` of the joints an optimiser may move: all but :attr:`coupled_joints`
+        (the floating base included)."""
+        coupled = set(self.coupled_joints)
+        return [j for j in range(self.dof) if j not in coupled]
+
+    def coupling_affine(self) -> tuple[np.ndarray, np.ndarray]:
+        """The couplings as an affine map from the free joints to ``q``.
+
+        Returns:
+            ``a (dof, F)`` and ``b (dof,)`` with ``q = a @ x + b`` for ``x`` the values of
+            :attr:`free_joints`: a free joint is copied, a coupled one is
+            ``ratio * leader + offset``.
+        """
+        free = self.free_joints
+        a = np.zeros((self.dof, len(free)))
+        a[free, np.arange(len(free))] = 1.0
+        b = np.zeros(self.dof)
+        followers, leaders = self._coupled.tolist(), self._leader.tolist()
+        ratios, offsets = self._ratio.tolist(), self._coupling_offset.tolist()
+        for follower, leader, ratio, offset in zip(
+            followers, leaders, ratios, offsets, strict=True
+        ):
+            a[follower, free.index(leader)] = ratio
+            b[follower] = offset
+        return a, b
+
     # --------------------------------------------------------------------------- kinematics
 
     def as_q(self, q) -> torch.Tensor:

@@ -132,7 +132,7 @@ def load_hand_spec(
 
     path = Path(name_or_path)
     if path.suffix not in (".yaml", ".yml"):
-        from dexflow.config import project_root
+        from dexflow.io.layout import project_root
 
         conf = Path(conf_dir) if conf_dir else project_root() / "conf"
         path = conf / "hand" / f"{name_or_path}.yaml"

@@ -29,7 +29,6 @@ __all__ = [
     "Sequence",
     "load_sequence",
     "save_sequence",
-    "stage_files",
     "validate_sequence",
 ]
 
@@ -308,19 +307,3 @@ def load_sequence(path: str | Path, data_root: str | Path | None = None) -> Sequ
         extras={k: v for k, v in arrays.items() if k not in _KNOWN_FIELDS},
     )
     return validate_sequence(seq, path, data_root)
-
-
-def stage_files(in_root: str | Path) -> list[Path]:
-    """The sequence files a stage maps over: ``in_root/sequences/*.npz``, sorted.
-
-    The output directory is left alone: :class:`dexflow.resume.StageOutput` keeps what an
-    interrupted run with the same params completed and empties it otherwise.
-
-    Raises:
-        FileNotFoundError: ``in_root/sequences`` holds no ``.npz`` file.
-    """
-    in_root = Path(in_root)
-    files = sorted((in_root / "sequences").glob("*.npz"))
-    if not files:
-        raise FileNotFoundError(f"{in_root / 'sequences'}: no *.npz sequence files")
-    return files

@@ -1,0 +1,233 @@
+"""Where a project's files are: the one map of ``data/``, ``reports/`` and ``conf/hand``.
+
+Every stage script, ``dexflow bench``, ``dexflow viz`` and the CLI build their paths from a
+:class:`Layout`; no other module spells them. ``dvc.yaml`` (declarative, so it cannot import
+this) spells the same paths; ``tests/test_layout.py`` checks that the two agree.
+
+A project::
+
+    conf/hand/                   hand yamls; relative model paths in them start here
+    <data.root>/sequences/*.npz  the input (canonical format), with the meshes it references
+    data/scale_align/            sequences/<name>.npz, objects/<key>/{mesh.obj, sdf.npz, ...}
+    data/retarget/<method>/      sequences/<name>.npz (trajectories; methods dexflow, position)
+    data/contact/                sequences/<name>.npz (contact states and map)
+    data/refine/                 sequences/<name>.npz (refined trajectories)
+    data/simulate/<label>/       sequences/<name>.npz (grasp tests; labels baseline, retarget,
+                                 refine)
+    data/metrics/                sequences/<name>.npz (per-frame metrics), sequences.csv
+    reports/metrics/<stage>.json deterministic stage metrics (DVC metrics)
+    reports/timing/<stage>.json  wall-clock speeds, kept apart from the metrics
+    reports/plots/, reports/figures/, reports/summary.md
+
+Every stage directory also holds ``summary.json`` (per sequence: status, error, statistics).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from dexflow.errors import ConfigError
+
+__all__ = [
+    "TRAJECTORIES",
+    "Layout",
+    "ObjectPaths",
+    "StageDir",
+    "project_root",
+]
+
+# The three trajectories the pipeline compares, by label: the baseline, the method before and
+# after refinement (the labels of simulate, metrics and reports).
+TRAJECTORIES = ("baseline", "retarget", "refine")
+_RETARGET_METHOD = {"baseline": "position", "retarget": "dexflow"}
+
+
+def project_root() -> Path:
+    """The directory holding ``conf/`` and ``params.yaml`` (the current one, or a parent)."""
+    here = Path.cwd().resolve()
+    for candidate in (here, *here.parents):
+        if (candidate / "conf" / "config.yaml").is_file():
+            return candidate
+    raise ConfigError(f"no conf/config.yaml in {here} or any parent: run dexflow from the project")
+
+
+@dataclass(frozen=True)
+class ObjectPaths:
+    """The files stage scale_align precomputes for one object (``objects/<key>/``)."""
+
+    root: Path
+
+    @property
+    def mesh(self) -> Path:
+        """The scaled mesh (OBJ)."""
+        return self.root / "mesh.obj"
+
+    @property
+    def sdf(self) -> Path:
+        """Its signed distance grid (:class:`dexflow.objects.sdf.SignedDistanceGrid`)."""
+        return self.root / "sdf.npz"
+
+    @property
+    def surface(self) -> Path:
+        """``points (N, 3)`` and outward ``normals (N, 3)`` sampled on the surface."""
+        return self.root / "surface.npz"
+
+    @property
+    def convex(self) -> Path:
+        """Convex decomposition for simulation, one ``o`` group per part."""
+        return self.root / "convex.obj"
+
+    @property
+    def meta(self) -> Path:
+        """Source mesh, scale, bounds, watertightness, part count (JSON)."""
+        return self.root / "meta.json"
+
+
+@dataclass(frozen=True)
+class StageDir:
+    """One stage's output directory: ``sequences/<name>.npz`` and ``summary.json``."""
+
+    root: Path
+
+    @property
+    def sequences_dir(self) -> Path:
+        return self.root / "sequences"
+
+    @property
+    def summary(self) -> Path:
+        return self.root / "summary.json"
+
+    def sequence(self, name: str | Path) -> Path:
+        """The file of sequence ``name`` (a name, or any path whose stem is the name)."""
+        return self.sequences_dir / f"{Path(name).stem}.npz"
+
+    def sequence_files(self) -> list[Path]:
+        """Every ``sequences/*.npz``, sorted by name (what a stage maps over).
+
+        Raises:
+            FileNotFoundError: there is none.
+        """
+        files = sorted(self.sequences_dir.glob("*.npz"))
+        if not files:
+            raise FileNotFoundError(f"{self.sequences_dir}: no *.npz sequence files")
+        return files
+
+    def names(self) -> list[str]:
+        """The sequence names present (empty if none)."""
+        return sorted(p.stem for p in self.sequences_dir.glob("*.npz"))
+
+    # Stage scale_align's directory also holds the objects.
+    def object_key(self, obj_mesh: str) -> str:
+        """The object key of a sequence's ``obj_mesh`` (``objects/<key>/mesh.obj``)."""
+        parts = Path(obj_mesh).parts
+        if len(parts) != 3 or parts[0] != "objects":
+            raise ValueError(f"{obj_mesh!r}: expected objects/<key>/mesh.obj (stage scale_align)")
+        return parts[1]
+
+    def object(self, key: str) -> ObjectPaths:
+        """The precomputed files of object ``key``."""
+        return ObjectPaths(self.root / "objects" / key)
+
+    def object_of(self, obj_mesh: str) -> ObjectPaths:
+        """The precomputed files of the object a scaled sequence's ``obj_mesh`` points at."""
+        return self.object(self.object_key(obj_mesh))
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A project's paths, relative to ``root`` (the directory ``dvc repro`` runs in).
+
+    Attributes:
+        root: The project directory.
+        data_root: The input sequences' directory (``data.root``), relative to ``root`` unless
+            absolute.
+    """
+
+    root: Path = Path(".")
+    data_root: Path = Path("data/demo")
+
+    @classmethod
+    def of(cls, data_root: str | Path, root: str | Path = ".") -> Layout:
+        return cls(Path(root), Path(data_root))
+
+    # ------------------------------------------------------------------ stage directories
+    @property
+    def data(self) -> StageDir:
+        """The input (``data.root``): ``sequences/*.npz`` and the meshes they reference."""
+        return StageDir(self.root / self.data_root)
+
+    @property
+    def scale_align(self) -> StageDir:
+        return StageDir(self.root / "data" / "scale_align")
+
+    def retarget(self, method: str) -> StageDir:
+        """Stage retarget's output for ``method`` (``dexflow`` or ``position``)."""
+        return StageDir(self.root / "data" / "retarget" / method)
+
+    @property
+    def contact(self) -> StageDir:
+        return StageDir(self.root / "data" / "contact")
+
+    @property
+    def refine(self) -> StageDir:
+        return StageDir(self.root / "data" / "refine")
+
+    def trajectory(self, label: str) -> StageDir:
+        """The trajectories labelled ``label`` (one of :data:`TRAJECTORIES`)."""
+        if label == "refine":
+            return self.refine
+        if label not in _RETARGET_METHOD:
+            raise ValueError(f"trajectory {label!r}: expected one of {list(TRAJECTORIES)}")
+        return self.retarget(_RETARGET_METHOD[label])
+
+    def simulate(self, label: str) -> StageDir:
+        """Stage simulate's output for the trajectories labelled ``label``."""
+        return StageDir(self.root / "data" / "simulate" / label)
+
+    @property
+    def metrics(self) -> StageDir:
+        return StageDir(self.root / "data" / "metrics")
+
+    @property
+    def metrics_table(self) -> Path:
+        """Per sequence and method, every metric (CSV; stage metrics)."""
+        return self.metrics.root / "sequences.csv"
+
+    @property
+    def hand_dir(self) -> Path:
+        """Where hand yamls live; relative model paths in them are resolved against it."""
+        return self.root / "conf" / "hand"
+
+    # ----------------------------------------------------------------------------- reports
+    @property
+    def reports(self) -> Path:
+        return self.root / "reports"
+
+    @property
+    def stage_metrics_dir(self) -> Path:
+        return self.reports / "metrics"
+
+    def stage_metrics(self, name: str) -> Path:
+        """A stage's deterministic metrics (``reports/metrics/<name>.json``, DVC metrics)."""
+        return self.stage_metrics_dir / f"{name}.json"
+
+    def timing(self, name: str) -> Path:
+        """A stage's wall-clock speeds (``reports/timing/<name>.json``), kept out of metrics."""
+        return self.reports / "timing" / f"{name}.json"
+
+    @property
+    def plots(self) -> Path:
+        return self.reports / "plots"
+
+    @property
+    def figures(self) -> Path:
+        return self.reports / "figures"
+
+    @property
+    def summary_report(self) -> Path:
+        return self.reports / "summary.md"
+
+    def recording(self, name: str) -> Path:
+        """A rerun recording (``reports/rerun/<name>.rrd``, written by ``dexflow view``)."""
+        return self.reports / "rerun" / f"{name}.rrd"

@@ -1,0 +1,461 @@
+"""The pipeline's parameters: one dataclass schema per ``params.yaml`` section, and their checks.
+
+A leaf module: it imports no stage, so every stage module, :mod:`dexflow.config` (which composes
+``conf/`` into ``params.yaml`` and loads it) and the tools can import the schemas they need
+without importing each other. Each attribute is documented in ``conf/<group>/*.yaml``, next to
+its default; :func:`validate` raises :class:`~dexflow.errors.ConfigError` naming the key whose
+value is out of range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from dexflow.errors import ConfigError
+from dexflow.hands.spec import HandSpec as HandParams
+
+__all__ = [
+    "DATA_GENERATORS",
+    "ContactParams",
+    "ConvexParams",
+    "DataParams",
+    "DemoConfig",
+    "GlobalSearchParams",
+    "HandParams",
+    "MetricsParams",
+    "PipelineParams",
+    "RefineParams",
+    "RetargetParams",
+    "RunParams",
+    "ScaleAlignParams",
+    "SimulateParams",
+    "validate",
+]
+
+# Stages of dvc.yaml that can write ``data.root`` (``data.generated_by`` names some of them).
+DATA_GENERATORS = ("demo",)
+
+
+def _require(condition: bool, key: str, expected: str, found: Any) -> None:
+    if not condition:
+        raise ConfigError(f"{key}: expected {expected}, found {found!r}")
+
+
+@dataclass
+class DataParams:
+    """Input sequences (``data``): a directory in the canonical format, or the generated demo.
+
+    Attributes:
+        name: The data's name (``demo`` for the generated demo; reports say which data they are).
+        root: Directory holding ``sequences/*.npz`` and the meshes they reference.
+        generated_by: The pipeline stages that write ``root``: ``[demo]`` for the demo, ``[]``
+            for your own data (``dvc.yaml``'s ``demo`` stage is a ``foreach`` over this list, so
+            plain ``dvc repro`` on your data has no demo stage to run).
+    """
+
+    name: str = "demo"
+    root: str = "data/demo"
+    generated_by: list[str] = field(default_factory=lambda: ["demo"])
+
+    def __post_init__(self) -> None:
+        _require(bool(self.root), "data.root", "a directory", self.root)
+        unknown = sorted(set(self.generated_by) - set(DATA_GENERATORS))
+        _require(not unknown, "data.generated_by", f"stages among {list(DATA_GENERATORS)}", unknown)
+
+
+@dataclass
+class DemoConfig:
+    """Size and realism of the demo dataset (``data.demo`` in params.yaml).
+
+    Attributes:
+        seed: Seed of everything random.
+        objects: Stand-in names (keys of ``STANDINS``); empty means all.
+        sequences_per_object: Sequences per object, cycling through its grasp types.
+        fps: Frame rate, Hz.
+        min_frames: Fewest frames in a sequence.
+        max_frames: Most frames in a sequence.
+        release_probability: Chance that a sequence ends by putting the object down.
+        noise_std_m: Tracker noise per coordinate (white and drifting parts each), metres.
+        inside_fraction: Share of contacting fingers annotated inside the object.
+        inside_depth_m: Range of that penetration, metres.
+        hover_fraction: Share of contacting fingers annotated hovering off the surface.
+        hover_gap_m: Range of the hover gap, metres.
+        hover_wobble_m: Amplitude of the slow wobble of a hovering finger, metres.
+        dropout_bursts: Mean number of NaN bursts per sequence (Poisson).
+        dropout_length: Range of frames per dropout burst.
+        tracking_loss_probability: Chance of a burst of "teleported" frames in a sequence.
+        tracking_loss_length: Range of frames per tracking-loss burst.
+        tracking_loss_distance_m: Range of how far away the lost hand is reported.
+        template_start_probability: Chance that a sequence starts with template frames.
+        template_start_length: Range of frames of that run.
+        template_end_probability: Chance that a sequence ends with template frames.
+        template_end_length: Range of frames of that run.
+        template_distance_m: Range of how far the template hand is from the real one.
+        template_max_fraction: Most of a sequence that template runs may take together.
+        hold_penetration_probability: Chance that the annotated hand sits too deep while holding.
+        hold_penetration_m: Range of how far it is shifted into the object along its approach.
+        hold_penetration_wobble_m: Amplitude of the slow wobble of that shift and of tip depths.
+        tip_inside_probability: Chance that pressing fingertips are annotated inside the object.
+        tip_depth_mean_m: Mean depth of the deepest fingertip keypoint (exponential), metres.
+        tip_depth_max_m: Largest such depth, metres.
+        hand_scale: Range of hand sizes (1 = average adult).
+        contact_tolerance_m: Skin-to-surface distance that counts as ground-truth contact.
+        sdf_spacing_m: Grid spacing of the signed distance used for synthesis.
+    """
+
+    seed: int = 0
+    objects: list[str] = field(default_factory=list)
+    sequences_per_object: int = 3
+    fps: float = 30.0
+    min_frames: int = 60
+    max_frames: int = 150
+    release_probability: float = 0.5
+    noise_std_m: float = 0.0015
+    inside_fraction: float = 0.35
+    inside_depth_m: tuple[float, float] = (0.003, 0.010)
+    hover_fraction: float = 0.3
+    hover_gap_m: tuple[float, float] = (0.003, 0.008)
+    hover_wobble_m: float = 0.003
+    dropout_bursts: float = 1.0
+    dropout_length: tuple[int, int] = (1, 4)
+    tracking_loss_probability: float = 0.4
+    tracking_loss_length: tuple[int, int] = (2, 5)
+    tracking_loss_distance_m: tuple[float, float] = (0.2, 0.5)
+    template_start_probability: float = 0.7
+    template_start_length: tuple[int, int] = (3, 25)
+    template_end_probability: float = 0.15
+    template_end_length: tuple[int, int] = (3, 12)
+    template_distance_m: tuple[float, float] = (0.6, 0.8)
+    template_max_fraction: float = 0.45
+    hold_penetration_probability: float = 0.5
+    hold_penetration_m: tuple[float, float] = (0.002, 0.01)
+    hold_penetration_wobble_m: float = 0.002
+    tip_inside_probability: float = 0.8
+    tip_depth_mean_m: float = 0.017
+    tip_depth_max_m: float = 0.03
+
+    def __post_init__(self) -> None:
+        from dexflow.errors import ConfigError
+
+        for key in ("template_start_probability", "template_end_probability",
+                    "hold_penetration_probability", "tip_inside_probability",
+                    "template_max_fraction"):  # fmt: skip
+            value = getattr(self, key)
+            if not 0.0 <= value <= 1.0:
+                raise ConfigError(f"demo.{key}: expected within [0, 1], found {value!r}")
+        for key in ("template_start_length", "template_end_length", "template_distance_m",
+                    "hold_penetration_m"):  # fmt: skip
+            lo, hi = getattr(self, key)
+            if not 0 <= lo <= hi:
+                raise ConfigError(f"demo.{key}: expected [lo, hi] with 0 <= lo <= hi, "
+                                  f"found {[lo, hi]!r}")  # fmt: skip
+        for key in ("tip_depth_mean_m", "tip_depth_max_m", "hold_penetration_wobble_m"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"demo.{key}: expected >= 0, found {getattr(self, key)!r}")
+
+    hand_scale: tuple[float, float] = (0.9, 1.1)
+    contact_tolerance_m: float = 0.001
+    sdf_spacing_m: float = 0.002
+
+
+def _validate_demo(d: DemoConfig) -> None:
+    _require(d.fps > 0, "demo.fps", "> 0", d.fps)
+    _require(
+        2 <= d.min_frames <= d.max_frames,
+        "demo.min_frames/max_frames",
+        "2 <= min_frames <= max_frames",
+        (d.min_frames, d.max_frames),
+    )
+    _require(
+        d.sequences_per_object >= 1, "demo.sequences_per_object", ">= 1", d.sequences_per_object
+    )
+    _require(
+        0 <= d.inside_fraction + d.hover_fraction <= 1,
+        "demo.inside_fraction + hover_fraction",
+        "within [0, 1]",
+        d.inside_fraction + d.hover_fraction,
+    )
+
+
+@dataclass
+class ConvexParams:
+    """Convex decomposition of objects for simulation (CoACD)."""
+
+    threshold: float = 0.1
+    max_hulls: int = 16
+    preprocess_resolution: int = 30
+    mcts_iterations: int = 60
+    mcts_max_depth: int = 2
+    mcts_nodes: int = 10
+
+    def __post_init__(self) -> None:
+        _require(
+            0 < self.threshold <= 1, "scale_align.convex.threshold", "within (0, 1]", self.threshold
+        )
+
+
+@dataclass
+class ScaleAlignParams:
+    """Stage ``scale_align`` (``scale_align``)."""
+
+    sdf_spacing_m: float = 0.002
+    sdf_padding_m: float = 0.03
+    surface_samples: int = 4096
+    convex: ConvexParams = field(default_factory=ConvexParams)
+
+    def __post_init__(self) -> None:
+        _require(
+            0 < self.sdf_spacing_m <= 0.02,
+            "scale_align.sdf_spacing_m",
+            "a grid spacing in (0, 0.02] metres",
+            self.sdf_spacing_m,
+        )
+        _require(self.sdf_padding_m >= 0, "scale_align.sdf_padding_m", ">= 0", self.sdf_padding_m)
+        _require(
+            self.surface_samples >= 16, "scale_align.surface_samples", ">= 16", self.surface_samples
+        )
+
+
+@dataclass
+class GlobalSearchParams:
+    """nlopt global search used for initialisation (paper: GN_CRS2_LM)."""
+
+    mode: str = "first_frame"
+    algorithm: str = "GN_CRS2_LM"
+    max_evals: int = 400
+    seed: int = 0
+
+
+@dataclass
+class RetargetParams:
+    """Stage ``retarget`` (``retarget`` in params.yaml). Weights are relative to metres²."""
+
+    method: str = "dexflow"
+    alpha: float = 0.0002
+    lambda_diff: float = 0.01
+    gamma_pred: float = 0.05
+    window: int = 0
+    base_sigma_m: float = 0.05
+    base_sigma_rad: float = 0.5
+    robust_delta_m: float = 0.02
+    iterations: int = 30
+    tolerance: float = 1e-3
+    global_search: GlobalSearchParams = field(default_factory=GlobalSearchParams)
+    recover_error_m: float = 0.03
+    recover_factor: float = 3.0
+    max_recoveries: int = 5
+    jump_threshold_m: float = 0.08
+    lowpass_hz: float = 0.0
+
+
+def _validate_retarget(r: RetargetParams) -> None:
+    _require(
+        r.method in ("dexflow", "position"), "retarget.method", "'dexflow' or 'position'", r.method
+    )
+    modes = ("first_frame", "every_frame", "off")
+    _require(
+        r.global_search.mode in modes,
+        "retarget.global_search.mode",
+        " | ".join(modes),
+        r.global_search.mode,
+    )
+    for key in ("alpha", "lambda_diff", "gamma_pred", "robust_delta_m", "lowpass_hz"):
+        _require(getattr(r, key) >= 0, f"retarget.{key}", ">= 0", getattr(r, key))
+    _require(r.window >= 0, "retarget.window", "0 (all frames) or a window length >= 1", r.window)
+    _require(r.iterations >= 1, "retarget.iterations", ">= 1", r.iterations)
+    import nlopt
+
+    _require(
+        hasattr(nlopt, r.global_search.algorithm),
+        "retarget.global_search.algorithm",
+        "an nlopt algorithm name such as GN_CRS2_LM",
+        r.global_search.algorithm,
+    )
+
+
+@dataclass
+class ContactParams:
+    """Stage ``contact`` (``contact`` in params.yaml)."""
+
+    dis_min_m: float = 0.010
+    dis_max_m: float = 0.0158
+    alpha: float = 0.6
+    finger_speed_mps: float = 0.8
+    tau_c: float = 0.7
+    smoothing: bool = True
+    guard: bool = True
+    spline_tolerance_m: float = 0.01
+    beta1: float = 1.0
+    accel_tolerance_mps2: float = 5.0
+    v_max_mps: float = 0.5
+    map_points: int = 8
+
+
+@dataclass
+class RefineParams:
+    """Stage ``refine`` (``refine`` in params.yaml)."""
+
+    finger_order: list[str] = field(
+        default_factory=lambda: ["thumb", "index", "middle", "ring", "little"]
+    )
+    w_dis: float = 1.0
+    w_pen: float = 30.0
+    w_align: float = 1e-5
+    w_spen: float = 0.01
+    w_joints: float = 1e-4
+    w_smooth: float = 0.1
+    spen_delta_m: float = 0.005
+    pen_margin_m: float = 0.001
+    spen_points: int = 64
+    iterations: int = 30
+    learning_rate: float = 0.03
+    blend_frames: float = 3.0
+    refine_base: bool = False
+    release: bool = True
+    release_w_pen: float = 300.0
+    release_w_touch: float = 100.0
+    release_w_track: float = 30.0
+    release_w_smooth: float = 300.0
+    release_w_smooth_joints: float = 30.0
+    release_iterations: int = 60
+
+
+@dataclass
+class SimulateParams:
+    """Stage ``simulate`` (``simulate`` in params.yaml)."""
+
+    control_dt_s: float = 1.0 / 60.0
+    substeps: int = 4
+    control_steps: int = 100
+    gravity: float = 9.8
+    object_mass_kg: float = 0.1
+    friction: float = 1.0
+    motor_force: float = 2.0
+    position_gain: float = 0.3
+    velocity_gain: float = 1.0
+    base_max_force: float = 1000.0
+    push_m: float = 0.005
+    contact_margin_m: float = 0.005
+    penetration_tol_m: float = 0.002
+    max_displacement_m: float = 0.05
+    max_rotation_deg: float = 15.0
+    drop_distance_m: float = 0.02
+    early_exit: bool = True
+    settle_steps: int = 20
+    stride: int = 5
+    early_stop: bool = True
+    max_frames: int = 0
+    massless_link_mass_kg: float = 0.002
+    massless_link_inertia_kgm2: float = 1e-7
+
+
+def _validate_simulate(s: SimulateParams) -> None:
+    for key in ("control_dt_s", "gravity", "object_mass_kg", "motor_force", "base_max_force"):
+        _require(getattr(s, key) > 0, f"simulate.{key}", "> 0", getattr(s, key))
+    non_negative = ("friction", "position_gain", "velocity_gain", "push_m", "contact_margin_m",
+                    "penetration_tol_m", "max_displacement_m", "max_rotation_deg",
+                    "drop_distance_m")  # fmt: skip
+    for key in non_negative:
+        _require(getattr(s, key) >= 0, f"simulate.{key}", ">= 0", getattr(s, key))
+    for key in ("substeps", "control_steps", "stride"):
+        _require(getattr(s, key) >= 1, f"simulate.{key}", ">= 1", getattr(s, key))
+    for key in ("settle_steps", "max_frames"):
+        _require(getattr(s, key) >= 0, f"simulate.{key}", ">= 0", getattr(s, key))
+
+
+@dataclass
+class MetricsParams:
+    """Stage ``metrics`` (``metrics`` in params.yaml)."""
+
+    pd_violation_m: float = 0.005
+    spd_violation_m: float = 0.002
+    limit_tolerance_rad: float = 1e-4
+    kl_bins: int = 30
+
+
+@dataclass
+class RunParams:
+    """How stages map over sequences (``run``; see ``conf/run/*.yaml``). Results do not depend
+    on it.
+
+    Attributes:
+        backend: ``sequential`` (the stage's process), ``local`` (joblib processes) or ``ray``
+            (Ray tasks; the ``ray`` extra).
+        n_jobs: Processes (``local``) or Ray tasks in flight (``ray``); -1 = every core.
+        address: ``ray`` only: None starts a local Ray with ``n_jobs`` CPUs; ``"auto"`` joins
+            the cluster this machine is part of; ``"ray://<head>:10001"`` a remote one.
+    """
+
+    backend: str = "local"
+    n_jobs: int = -1
+    address: str | None = None
+
+    def __post_init__(self) -> None:
+        _require(
+            self.backend in ("sequential", "local", "ray"),
+            "run.backend",
+            "'sequential', 'local' or 'ray'",
+            self.backend,
+        )
+        _require(self.n_jobs == -1 or self.n_jobs >= 1, "run.n_jobs", "-1 or >= 1", self.n_jobs)
+        _require(
+            self.address is None or self.backend == "ray",
+            "run.address",
+            "null unless run.backend is 'ray'",
+            self.address,
+        )
+        _require(
+            self.address is None or bool(str(self.address).strip()),
+            "run.address",
+            "null (a local Ray), 'auto' or 'ray://<head>:10001'",
+            self.address,
+        )
+
+
+@dataclass
+class PipelineParams:
+    """Everything in params.yaml."""
+
+    seed: int = 0
+    hand: HandParams = field(default_factory=HandParams)
+    data: DataParams = field(default_factory=DataParams)
+    demo: DemoConfig = field(default_factory=DemoConfig)
+    scale_align: ScaleAlignParams = field(default_factory=ScaleAlignParams)
+    retarget: RetargetParams = field(default_factory=RetargetParams)
+    contact: ContactParams = field(default_factory=ContactParams)
+    refine: RefineParams = field(default_factory=RefineParams)
+    simulate: SimulateParams = field(default_factory=SimulateParams)
+    metrics: MetricsParams = field(default_factory=MetricsParams)
+    run: RunParams = field(default_factory=RunParams)
+
+
+def validate(params: PipelineParams) -> PipelineParams:
+    """Check the ranges and cross-field rules the types cannot express.
+
+    Raises:
+        ConfigError: naming the first key whose value is wrong, what was expected and found.
+    """
+    _validate_demo(params.demo)
+    _validate_retarget(params.retarget)
+    c = params.contact
+    _require(
+        0 <= c.dis_min_m <= c.dis_max_m,
+        "contact.dis_min_m/dis_max_m",
+        "0 <= dis_min_m <= dis_max_m",
+        (c.dis_min_m, c.dis_max_m),
+    )
+    _require(c.map_points >= 1, "contact.map_points", ">= 1", c.map_points)
+    r = params.refine
+    unknown = sorted(set(r.finger_order) - {"thumb", "index", "middle", "ring", "little"})
+    _require(not unknown, "refine.finger_order", "finger names thumb..little", unknown)
+    for key in ("w_dis", "w_pen", "w_align", "w_spen", "w_joints", "w_smooth", "learning_rate",
+                "release_w_pen", "release_w_touch", "release_w_track", "release_w_smooth",
+                "release_w_smooth_joints", "release_iterations"):  # fmt: skip
+        _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
+    _validate_simulate(params.simulate)
+    m = params.metrics
+    for key in ("pd_violation_m", "spd_violation_m", "limit_tolerance_rad"):
+        _require(getattr(m, key) >= 0, f"metrics.{key}", ">= 0", getattr(m, key))
+    _require(m.kl_bins >= 2, "metrics.kl_bins", ">= 2", m.kl_bins)
+    return params

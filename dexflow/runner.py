@@ -1,0 +1,85 @@
+"""The one skeleton every stage script runs: params in, stage run, metrics and timing out.
+
+A stage module declares a :class:`StageSpec` (its name, its runner, the summary keys that are
+its DVC metrics, a one-line description); its script in ``stages/`` is then just::
+
+    from dexflow.refine import STAGE
+    from dexflow.runner import stage_main
+
+    sys.exit(stage_main(STAGE, sys.argv[1:]))
+
+:func:`stage_main` loads and validates ``params.yaml``, builds the project's
+:class:`~dexflow.io.layout.Layout`, calls the runner (which maps over the sequences with
+:class:`dexflow.resume.StageOutput`: resume, progress bar, one failed sequence never stops the
+rest), writes ``reports/metrics/<tag>.json`` (deterministic) and ``reports/timing/<tag>.json``
+(wall clock), logs one line and every failed sequence, and returns the exit code: 0 when at least
+one sequence succeeded.
+
+Runners return their summary (what ``summary.json`` holds) with the wall-clock figures under the
+key ``timing``, which is never written into the stage's outputs (DVC hashes those).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from dexflow.config import load_params
+from dexflow.io.atomic import save_json
+from dexflow.io.layout import Layout
+from dexflow.params import PipelineParams
+
+__all__ = ["StageSpec", "run_stage", "stage_main"]
+
+log = logging.getLogger("dexflow.stage")
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """A pipeline stage as its script runs it.
+
+    Attributes:
+        name: The stage's name in ``dvc.yaml`` (without ``@item``).
+        run: ``run(params, layout, *args) -> summary``; ``args`` are the script's arguments
+            (the ``foreach`` item: retarget's method, simulate's trajectory label).
+        metric_keys: Summary keys written to ``reports/metrics/<tag>.json`` (those present);
+            None writes every key but ``sequences`` and ``timing``.
+        describe: One log line from the summary.
+    """
+
+    name: str
+    run: Callable[..., dict]
+    metric_keys: tuple[str, ...] | None
+    describe: Callable[[dict], str]
+
+    def tag(self, args: list[str] | tuple[str, ...] = ()) -> str:
+        """``<name>`` or ``<name>_<item>``: the file name of its metrics and timing."""
+        return "_".join([self.name, *args])
+
+
+def run_stage(spec: StageSpec, params: PipelineParams, layout: Layout, args=()) -> dict:
+    """Run a stage and write its metrics and timing files; returns the summary (timing
+    included)."""
+    summary = spec.run(params, layout, *args)
+    tag = spec.tag(tuple(args))
+    keys = spec.metric_keys
+    if keys is None:
+        keys = [k for k in summary if k not in ("sequences", "timing")]
+    save_json(layout.stage_metrics(tag), {k: summary[k] for k in keys if k in summary})
+    if summary.get("timing"):
+        save_json(layout.timing(tag), summary["timing"])
+    label = "@".join([spec.name, *args])
+    log.info("%s: %s", label, spec.describe(summary))
+    for name, entry in summary.get("sequences", {}).items():
+        if entry.get("status") != "ok":
+            log.error("%s: %s failed: %s", label, name, entry.get("error"))
+    return summary
+
+
+def stage_main(spec: StageSpec, args: list[str] | None = None) -> int:
+    """A stage script's ``main``: see the module docstring. Exit code 1 when nothing succeeded."""
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    params = load_params("params.yaml")
+    summary = run_stage(spec, params, Layout.of(params.data.root), tuple(args or ()))
+    return 0 if summary.get("num_ok", 0) > 0 else 1
