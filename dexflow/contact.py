@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from dexflow.geometry import transform_points, world_to_object
 from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.io.artifacts import ContactResult, ObjectAssets, read_trajectory, write_contact
 from dexflow.io.layout import Layout, StageDir
@@ -130,8 +131,7 @@ def finger_distances(
     with torch.no_grad():
         points, _ = hand.surface(torch.as_tensor(q, dtype=hand.dtype))
     points = points.numpy()
-    inv = np.linalg.inv(np.asarray(obj_pose))
-    local = np.einsum("tij,tnj->tni", inv[:, :3, :3], points) + inv[:, None, :3, 3]
+    local = world_to_object(points, obj_pose)
     dist = sdf.query(local)
     per_finger = np.stack(
         [np.where(m, dist, np.inf).min(axis=1) for m in hand.finger_point_masks.values()], axis=1
@@ -200,9 +200,7 @@ def contact_sequence(
     closest = np.stack(
         [local[np.arange(len(q)), np.where(m, dist, np.inf).argmin(axis=1)] for m in masks], 1
     )
-    world = (
-        np.einsum("tij,tfj->tfi", seq.obj_pose[:, :3, :3], closest) + seq.obj_pose[:, None, :3, 3]
-    )
+    world = transform_points(seq.obj_pose, closest)
     guard = _guard(world, seq.obj_pose[:, :3, 3], seq.fps, params)
     raw, final = contact_states(distance, seq.fps, params, guard)
     result = ContactResult(

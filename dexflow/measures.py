@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from dexflow.geometry import world_to_object
+
 if TYPE_CHECKING:
     from dexflow.hands.robot import RobotHand
     from dexflow.objects.sdf import SignedDistanceGrid
@@ -27,11 +29,6 @@ __all__ = [
     "surface_distances",
     "velocity_kl",
 ]
-
-
-def _world_to_object(points: np.ndarray, obj_pose: np.ndarray) -> np.ndarray:
-    inv = np.linalg.inv(np.asarray(obj_pose))
-    return np.einsum("tij,tnj->tni", inv[:, :3, :3], points) + inv[:, None, :3, 3]
 
 
 def surface_distances(
@@ -55,7 +52,7 @@ def surface_distances(
     with torch.no_grad():
         points, _ = hand.surface(torch.as_tensor(q, dtype=hand.dtype))
     points = points.cpu().numpy()
-    return sdf.query(_world_to_object(points, obj_pose)), points
+    return sdf.query(world_to_object(points, obj_pose)), points
 
 
 def penetration_depth(distances: np.ndarray) -> np.ndarray:

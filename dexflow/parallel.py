@@ -56,7 +56,7 @@ class ItemResult(Generic[T]):
 def _run(func: Callable[[Any], T], item: Any) -> ItemResult[T]:
     try:
         return ItemResult(item, value=func(item))
-    except Exception as exc:  # one bad item must not take the others down (DESIGN §8)
+    except Exception as exc:  # one bad item must not take the others down
         return ItemResult(
             item, error=f"{type(exc).__name__}: {exc}", details=traceback.format_exc()
         )

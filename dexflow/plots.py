@@ -11,6 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
+from dexflow.geometry import transform_points
 from dexflow.human.keypoints import FINGER_KEYPOINTS, FINGERS, FINGERTIPS
 from dexflow.io.atomic import atomic_path
 from dexflow.io.layout import StageDir
@@ -23,8 +24,7 @@ _FINGER_COLORS = ("tab:red", "tab:orange", "tab:green", "tab:blue", "tab:purple"
 
 
 def _draw(ax, seq, mesh, frame: int) -> None:
-    pose = seq.obj_pose[frame]
-    vertices = mesh.vertices @ pose[:3, :3].T + pose[:3, 3]
+    vertices = transform_points(seq.obj_pose[frame], mesh.vertices)
     tris = vertices[mesh.faces]
     ax.add_collection3d(Poly3DCollection(tris, facecolor="0.75", edgecolor="none", alpha=0.35))
     kp = seq.keypoints[frame]

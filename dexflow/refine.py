@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dexflow.geometry import rotate_vectors, transform_points
 from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.io.artifacts import (
     ObjectAssets,
@@ -102,10 +103,6 @@ class TorchSDF:
             self.values, grid, align_corners=True, padding_mode="border"
         ).reshape(-1)
         return (value + outside).reshape(shape)
-
-
-def _to_object(points: torch.Tensor, world_to_obj: torch.Tensor) -> torch.Tensor:
-    return points @ world_to_obj[:, :3, :3].transpose(1, 2) + world_to_obj[:, None, :3, 3]
 
 
 def hand_object_measures(
@@ -219,7 +216,7 @@ def release_hand(
         q = hand.apply_couplings(q)
         transforms = hand.frame_transforms(q)
         points, _ = hand.surface(q, transforms)
-        sd = sdf(_to_object(points, world_to_obj))  # (T, N)
+        sd = sdf(transform_points(world_to_obj, points))  # (T, N)
         total = params.release_w_pen * (torch.relu(margin - sd) ** 2).sum()
         if touching.any():
             per_finger = torch.where(masks[None], sd[:, None], torch.inf).amin(-1)  # (T, F)
@@ -279,8 +276,8 @@ def energy_terms(
     """
     rows, hand_rows, obj_pts, obj_nrm = contacts
     points, normals = hand.surface_points(hand.apply_couplings(q), finger_idx)
-    local = _to_object(points, world_to_obj)
-    normals_obj = normals @ world_to_obj[:, :3, :3].transpose(1, 2)
+    local = transform_points(world_to_obj, points)
+    normals_obj = rotate_vectors(world_to_obj, normals)
     zero = torch.zeros(len(q), dtype=q.dtype)
     dis, align = zero, zero
     if len(rows):

@@ -18,12 +18,16 @@ from pathlib import Path
 import numpy as np
 
 from dexflow.io.layout import Layout
+from dexflow.params import PipelineParams
+from dexflow.runner import StageSpec
 
 __all__ = [
     "PAPER",
+    "STAGE",
     "Experiment",
     "collect_dvc",
     "collect_multirun",
+    "run_report",
     "write_ablation",
     "write_project_summary",
     "write_summary",
@@ -619,3 +623,17 @@ def _mean(values) -> float:
 def _sort_key(value: str):
     parsed = json.loads(value)
     return (0, parsed, "") if isinstance(parsed, (int, float)) else (1, 0, str(parsed))
+
+
+def run_report(params: PipelineParams, layout: Layout) -> dict:
+    """Stage runner: :func:`write_project_summary` for the data ``params.data`` names."""
+    out = write_project_summary(layout, data_name=params.data.name)
+    return {"stage": "report", "summary": str(out)}
+
+
+STAGE = StageSpec(
+    name="report",
+    run=run_report,
+    metric_keys=(),  # a report, not a measurement
+    describe=lambda s: f"wrote {s['summary']}",
+)

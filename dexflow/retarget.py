@@ -97,18 +97,6 @@ class RetargetResult:
     stats: dict
 
 
-def _kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """(4, 4) rigid transform T minimising ||T src - dst|| (points (N, 3))."""
-    cs, cd = src.mean(0), dst.mean(0)
-    u, _, vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    out = np.eye(4)
-    out[:3, :3] = rot
-    out[:3, 3] = cd - rot @ cs
-    return out
-
-
 class _Problem:
     """The free variables of a hand: joints that are not tied to another by a coupling."""
 
@@ -144,7 +132,7 @@ class _Problem:
         return kp.numpy(), jac.numpy() @ self.a  # (T,K,3), (T,K,3,n)
 
 
-def _temporal_blocks(n_frames: int, w_vel: np.ndarray, w_acc: np.ndarray, fixed: int = 0):
+def _temporal_blocks(n_frames: int, w_vel: np.ndarray, w_acc: np.ndarray):
     """Blocks of the constant temporal Hessian: diagonal (T,n,n), first (T-1) and second
     (T-2) sub-diagonals, for velocity and acceleration terms over frames 1.. and 2.."""
     n = w_vel.shape[0]
@@ -343,12 +331,16 @@ def _initial_base(hand: RobotHand, human: np.ndarray, observed: np.ndarray) -> n
     robot = hand.keypoints(zero)[0].detach().numpy()[use]
     base = np.zeros((len(human), 6))
     idx = np.flatnonzero(observed)
-    for t in idx:
-        fit = _kabsch(robot, human[t, mano[use]])
-        base[t, :3] = fit[:3, 3]
-        base[t, 3:] = Rotation.from_matrix(fit[:3, :3]).as_euler("XYZ")
     if len(idx) == 0:
         return base
+    # Kabsch on the centred points: R minimises Σ ||(h - h̄) - R (r - r̄)||², then t = h̄ - R r̄.
+    target = human[idx][:, mano[use]]  # (T, P, 3)
+    centre, target_centre = robot.mean(axis=0), target.mean(axis=1)
+    centred = target - target_centre[:, None]
+    # align_vectors(a, b) fits a ≈ R b for one frame at a time.
+    rotation = Rotation.concatenate([Rotation.align_vectors(h, robot - centre)[0] for h in centred])
+    base[idx, :3] = target_centre - rotation.apply(centre)
+    base[idx, 3:] = rotation.as_euler("XYZ")  # the floating base's Rx Ry Rz (base_transform)
     # Unobserved frames: nearest observed frame; unwrap angles so the base moves continuously.
     nearest = idx[np.abs(np.arange(len(human))[:, None] - idx[None]).argmin(axis=1)]
     base = base[nearest]

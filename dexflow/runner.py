@@ -44,7 +44,7 @@ class StageSpec:
         run: ``run(params, layout, *args) -> summary``; ``args`` are the script's arguments
             (the ``foreach`` item: retarget's method, simulate's trajectory label).
         metric_keys: Summary keys written to ``reports/metrics/<tag>.json`` (those present);
-            None writes every key but ``sequences`` and ``timing``.
+            None writes every key but ``sequences`` and ``timing``; ``()`` writes no file.
         describe: One log line from the summary.
     """
 
@@ -66,20 +66,28 @@ def run_stage(spec: StageSpec, params: PipelineParams, layout: Layout, args=()) 
     keys = spec.metric_keys
     if keys is None:
         keys = [k for k in summary if k not in ("sequences", "timing")]
-    save_json(layout.stage_metrics(tag), {k: summary[k] for k in keys if k in summary})
+    if keys:
+        save_json(layout.stage_metrics(tag), {k: summary[k] for k in keys if k in summary})
     if summary.get("timing"):
         save_json(layout.timing(tag), summary["timing"])
     label = "@".join([spec.name, *args])
     log.info("%s: %s", label, spec.describe(summary))
-    for name, entry in summary.get("sequences", {}).items():
+    for name, entry in _sequence_entries(summary).items():
         if entry.get("status") != "ok":
             log.error("%s: %s failed: %s", label, name, entry.get("error"))
     return summary
 
 
+def _sequence_entries(summary: dict) -> dict[str, dict]:
+    """Per sequence its entry, for stages that map over sequences (others have none)."""
+    entries = summary.get("sequences")
+    return entries if isinstance(entries, dict) else {}
+
+
 def stage_main(spec: StageSpec, args: list[str] | None = None) -> int:
-    """A stage script's ``main``: see the module docstring. Exit code 1 when nothing succeeded."""
+    """A stage script's ``main``: see the module docstring. Exit code 1 when a stage that maps
+    over sequences had none succeed (a stage that raises exits 1 with the traceback)."""
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     params = load_params("params.yaml")
     summary = run_stage(spec, params, Layout.of(params.data.root), tuple(args or ()))
-    return 0 if summary.get("num_ok", 0) > 0 else 1
+    return 1 if _sequence_entries(summary) and summary.get("num_ok", 0) == 0 else 0

@@ -127,10 +127,16 @@ def _mass_frame(parts: list[np.ndarray], mass: float) -> tuple[np.ndarray, np.nd
 
 
 def _pose7(transform: np.ndarray) -> tuple[list[float], list[float]]:
+    """pybullet pose of a (4, 4) transform: position and quaternion (x, y, z, w)."""
     return transform[:3, 3].tolist(), Rotation.from_matrix(transform[:3, :3]).as_quat().tolist()
 
 
 def _matrix(position, quaternion) -> np.ndarray:
+    """(4, 4) transform of a pybullet pose: position and quaternion (x, y, z, w).
+
+    Not ``RigidTransform.from_components``: its rotation block differs from
+    ``Rotation.as_matrix`` by about 1e-16, and these matrices feed back into the physics.
+    """
     out = np.eye(4)
     out[:3, :3] = Rotation.from_quat(quaternion).as_matrix()
     out[:3, 3] = position

@@ -321,3 +321,11 @@ def test_object_surface_without_normals_is_refused(tmp_path):
     np.savez(paths.surface, points=np.zeros((4, 3)))
     with pytest.raises(ArtifactError, match="normals"):
         ObjectAssets(paths).surface()
+
+
+@pytest.mark.parametrize("content", [b"", b"garbage", b"PK\x03\x04truncated"])
+def test_an_unreadable_file_is_an_artifact_error_naming_it(tmp_path, content):
+    path = tmp_path / "broken.npz"
+    path.write_bytes(content)
+    with pytest.raises(ArtifactError, match=r"broken\.npz: not a readable \.npz"):
+        read_trajectory(path)

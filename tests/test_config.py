@@ -30,7 +30,8 @@ def test_committed_params_equal_the_composition_of_conf(tmp_path):
     "override",
     [
         f"{group}={option}"
-        for group in ("hand", "data", "demo", "scale_align", "run")
+        for group in sorted(p.name for p in (ROOT / "conf").iterdir() if p.is_dir())
+        if group != "experiment"
         for option in _options(group)
     ],
 )
@@ -39,6 +40,48 @@ def test_every_group_option_composes_and_validates(tmp_path, override):
     group, option = override.split("=")
     if group == "hand":
         assert params.hand.name == option
+
+
+def _leaves(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out |= _leaves(value, f"{prefix}{key}.")
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+@pytest.mark.parametrize("experiment", _options("experiment"))
+def test_every_experiment_composes_validates_and_changes_what_it_names(tmp_path, experiment):
+    """A named ablation (conf/experiment/*.yaml) composes into valid params that differ from
+    the defaults exactly where the experiment file says (a typo'd key would fail to compose, a
+    value equal to the default would ablate nothing)."""
+    import yaml
+    from omegaconf import OmegaConf
+
+    text = (ROOT / "conf" / "experiment" / f"{experiment}.yaml").read_text()
+    assert text.startswith("# @package _global_"), "a named experiment overrides global keys"
+    path = compose_params(
+        [f"experiment={experiment}"], tmp_path / "e.yaml", config_dir=ROOT / "conf"
+    )
+    load_params(path)  # validates every section
+    composed = _leaves(yaml.safe_load(path.read_text()))
+    default = _leaves(yaml.safe_load((ROOT / "params.yaml").read_text()))
+    overrides = _leaves(OmegaConf.to_container(OmegaConf.create(text)))
+    changed = {k for k in composed if composed[k] != default.get(k)}
+    expected = {k for k in overrides if not k.startswith("defaults")}
+    assert expected <= set(composed), (
+        f"{experiment}: keys not in params: {expected - set(composed)}"
+    )
+    assert {k for k in expected if composed[k] != default[k]} == expected, (
+        f"{experiment}: some keys equal the defaults"
+    )
+    assert changed >= expected
+    groups = [next(iter(d)).split("/")[-1] for d in yaml.safe_load(text).get("defaults", [])]
+    for group in groups:  # "override /hand: allegro": the hand section is another one
+        assert any(k.startswith(f"{group}.") for k in changed), f"{experiment}: {group} unchanged"
+    assert expected or groups, f"{experiment}: changes nothing"
 
 
 def test_sweep_override_reaches_params(tmp_path):

@@ -3,17 +3,21 @@
 from __future__ import annotations
 
 import textwrap
+import xml.etree.ElementTree as ET
 
 import mujoco
 import numpy as np
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from dexflow.cli import main as cli_main
 from dexflow.errors import HandConfigError
 from dexflow.hands import load_hand
 from dexflow.hands.check import check_hand
 from dexflow.hands.export import export_urdf
+from dexflow.hands.model import _origin
+from dexflow.hands.robot import base_transform
 
 
 @pytest.fixture(scope="module")
@@ -105,6 +109,50 @@ def test_floating_base_moves_everything_rigidly(allegro):
     rz = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
     expected = allegro.keypoints(q)[0] @ rz.T + moved[0, :3]
     torch.testing.assert_close(allegro.keypoints(moved)[0], expected, atol=1e-12, rtol=0)
+
+
+def test_floating_base_rotation_is_rx_ry_rz_and_differentiable():
+    q_base = torch.as_tensor(np.random.default_rng(5).uniform(-3, 3, size=(8, 6)))
+    t = base_transform(q_base).numpy()
+    for (x, y, z, a, b, c), pose in zip(q_base.numpy(), t, strict=True):
+        rot = Rotation.from_rotvec([a, 0, 0]) * Rotation.from_rotvec([0, b, 0])
+        rot = rot * Rotation.from_rotvec([0, 0, c])  # Rx Ry Rz: each about the rotated axes
+        np.testing.assert_allclose(pose[:3, :3], rot.as_matrix(), atol=1e-12)
+        np.testing.assert_allclose(pose[:3, 3], [x, y, z], atol=0)
+        np.testing.assert_allclose(pose[3], [0, 0, 0, 1], atol=0)
+    assert torch.autograd.gradcheck(base_transform, (q_base[:2].clone().requires_grad_(),))
+
+
+def test_mjcf_geometry_poses_match_mujoco(shadow):
+    """Every collision shape sits in its body where MuJoCo puts it (quaternions are w, x, y, z)."""
+    m = shadow.model.mj_model
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    rotated = 0
+    for geom in shadow.model.geometries:
+        body = m.body(geom.link).id
+        rot_body = d.xmat[body].reshape(3, 3)
+        in_body = []
+        for g in np.flatnonzero(m.geom_bodyid == body):
+            pose = np.eye(4)
+            pose[:3, :3] = rot_body.T @ d.geom_xmat[g].reshape(3, 3)
+            pose[:3, 3] = rot_body.T @ (d.geom_xpos[g] - d.xpos[body])
+            in_body.append(pose)
+        assert min(np.abs(geom.transform - ref).max() for ref in in_body) < 1e-9, geom.link
+        rotated += not np.allclose(geom.transform[:3, :3], np.eye(3), atol=1e-6)
+    assert rotated > 0  # the check sees the quaternion convention
+
+
+def test_urdf_origin_rpy_is_about_the_fixed_axes():
+    element = ET.fromstring(
+        '<collision><origin xyz="0.1 -0.2 0.3" rpy="0.3 -0.5 1.1"/></collision>'
+    )
+    yaw, pitch, roll = (Rotation.from_rotvec(v) for v in ([0, 0, 1.1], [0, -0.5, 0], [0.3, 0, 0]))
+    pose = _origin(element)
+    np.testing.assert_allclose(pose[:3, :3], (yaw * pitch * roll).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(pose[:3, 3], [0.1, -0.2, 0.3], atol=0)
+    np.testing.assert_allclose(pose[3], [0, 0, 0, 1], atol=0)
+    np.testing.assert_allclose(_origin(ET.fromstring("<collision/>")), np.eye(4), atol=0)
 
 
 def test_surface_normals_point_outwards(allegro):

@@ -324,3 +324,42 @@ def test_collect_dvc_and_multirun(tmp_path):
     runs = collect_multirun(tmp_path / "multirun")
     assert [r.params["contact.dis_min_m"] for r in runs] == [0.008, 0.012]
     assert runs[0].error is None and runs[1].error == "stage refine: x"
+
+
+def test_aggregate_velocity_kl_pools_the_sequences_with_the_configured_bins():
+    """metrics.json's velocity_kl: the speeds of all sequences pooled, ``metrics.kl_bins`` bins
+    (it once ignored kl_bins and used the default 30)."""
+    from dexflow.io.artifacts import MetricFrames
+    from dexflow.measures import velocity_kl
+    from dexflow.metrics import METHODS, _aggregate
+
+    rng = np.random.default_rng(0)
+    ok = {}
+    for name in ("a", "b"):
+        speeds = {m: {"tip_speed_human": rng.gamma(2.0, 0.1, 200),
+                      "tip_speed_robot": rng.gamma(2.5, 0.1, 200)} for m in METHODS}  # fmt: skip
+        frames = MetricFrames(np.zeros(0), np.zeros((0, 5), bool), speeds)
+        contact = {"flicker_raw": 0.0, "flicker_final": 0.0}
+        ok[name] = {"methods": {m: {} for m in METHODS}, "contact": contact, "per_frame": frames}
+    human = np.concatenate([ok[n]["per_frame"].methods["refine"]["tip_speed_human"] for n in ok])
+    robot = np.concatenate([ok[n]["per_frame"].methods["refine"]["tip_speed_robot"] for n in ok])
+    for bins in (4, 30, 80):
+        pooled = _aggregate(ok, kl_bins=bins)["refine.velocity_kl"]
+        assert pooled == pytest.approx(velocity_kl(human, robot, bins=bins), rel=1e-12)
+    assert _aggregate(ok, 4)["refine.velocity_kl"] != _aggregate(ok, 80)["refine.velocity_kl"]
+
+
+def test_contact_precision_recall_pool_counts_over_sequences():
+    """One definition: counts of every sequence summed, then the rates (not a mean of rates)."""
+    from dexflow.measures import contact_counts, precision_recall
+
+    truth = np.array([[1, 1], [1, 0], [0, 0]], dtype=bool)
+    a = contact_counts(np.array([[1, 0], [1, 1], [0, 0]], dtype=bool), truth)
+    assert a == {"tp": 2, "fp": 1, "fn": 1}
+    b = contact_counts(np.ones((10, 2), dtype=bool), np.ones((10, 2), dtype=bool))
+    pooled = precision_recall(*(a[k] + b[k] for k in ("tp", "fp", "fn")))
+    assert pooled["precision"] == pytest.approx(22 / 23) and pooled["recall"] == pytest.approx(
+        22 / 23
+    )
+    mean_of_rates = (precision_recall(**a)["precision"] + 1.0) / 2
+    assert pooled["precision"] != pytest.approx(mean_of_rates)

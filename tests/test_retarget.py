@@ -10,10 +10,12 @@ import torch
 
 from dexflow.hands import load_hand
 from dexflow.hands.jacobian import KeypointJacobian
+from dexflow.hands.robot import base_transform
 from dexflow.human.cleaning import detect_bad_frames
 from dexflow.io.sequence import Sequence
 from dexflow.retarget import (
     RetargetParams,
+    _initial_base,
     _temporal_blocks,
     _to_banded,
     retarget_sequence,
@@ -163,6 +165,23 @@ def test_analytic_jacobian_equals_autograd(hands, name):
     for t in range(3):
         ref = torch.autograd.functional.jacobian(lambda x: hand.keypoints(x)[0], q[t])
         torch.testing.assert_close(jac[t], ref, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("name", ["shadow", "allegro"])
+def test_initial_base_is_the_rigid_fit_of_the_palm(hands, name):
+    """A hand moved rigidly gives its base back; unobserved frames copy the nearest fit."""
+    hand = hands[name]
+    rng = np.random.default_rng(12)
+    q = hand.zero().repeat(6, 1)
+    q[:, :3] = torch.as_tensor(rng.normal(scale=0.2, size=(6, 3)))
+    q[:, 3:6] = torch.as_tensor(rng.uniform(-1.2, 1.2, size=(6, 3)))
+    human = np.full((6, 21, 3), np.nan)
+    human[:, hand.mano_indices] = hand.keypoints(q).numpy()
+    observed = np.array([True, True, False, True, True, True])
+    base = _initial_base(hand, human, observed)
+    fitted, truth = base_transform(torch.as_tensor(base)), base_transform(q[:, :6])
+    torch.testing.assert_close(fitted[observed], truth[observed], atol=1e-9, rtol=0)
+    torch.testing.assert_close(fitted[2], fitted[1], atol=1e-12, rtol=0)
 
 
 def test_banded_temporal_matrix_equals_dense():

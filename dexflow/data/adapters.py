@@ -56,18 +56,19 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import RigidTransform, Rotation
 
 from dexflow.data.mirror import mirror_mesh, mirror_sequence
 from dexflow.errors import DexflowError, SequenceFormatError
+from dexflow.geometry import transform_points, world_to_object
 from dexflow.human.cleaning import detect_bad_frames
 from dexflow.human.keypoints import FINGERTIPS
 from dexflow.human.mano import MANO_TO_DEXFLOW, ManoModel, load_mano
 from dexflow.io.atomic import save_json
+from dexflow.io.layout import StageDir
 from dexflow.io.sequence import Sequence, save_sequence
 from dexflow.objects.mesh import load_mesh, write_obj
 from dexflow.objects.sdf import signed_distance
-from dexflow.io.layout import StageDir
 
 __all__ = ["ADAPTERS", "ConvertOptions", "DatasetLayoutError", "RawSequence", "convert"]
 
@@ -147,6 +148,11 @@ def _field(data, key: str, where: Path | str):
 
 
 def _pose(rot, trans) -> np.ndarray:
+    """(4, 4) pose from a rotation vector (3,) or a rotation matrix (3, 3) and a translation.
+
+    A matrix is taken as it is: ``RigidTransform`` would re-orthonormalise it, moving the
+    annotation by up to its float32 error.
+    """
     out = np.eye(4)
     out[:3, :3] = (
         np.asarray(rot, dtype=np.float64).reshape(3, 3)
@@ -221,7 +227,7 @@ def _dexycb(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
             elif mano is not None and not mano.any():
                 template[frame] = True
             else:
-                kp[frame] = joints @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
+                kp[frame] = transform_points(cam_to_world, joints)
             if len(objects) > grasp and np.isfinite(objects[grasp]).all() and objects[grasp].any():
                 pose[frame] = cam_to_world @ np.vstack([objects[grasp], [0, 0, 0, 1]])
         name = YCB_CLASSES[int(ycb_ids[grasp]) - 1]
@@ -335,9 +341,7 @@ def _grab(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
         orient = np.asarray(
             _field(params, "global_orient", f"{path}: object.params"), dtype=np.float64
         )
-        pose = np.repeat(np.eye(4)[None], len(transl), axis=0)
-        pose[:, :3, :3] = Rotation.from_rotvec(orient).as_matrix()
-        pose[:, :3, 3] = transl
+        pose = RigidTransform.from_components(transl, Rotation.from_rotvec(orient)).as_matrix()
         mesh = src / str(_field(obj, "object_mesh", f"{path}: object"))
         for side in sides:
             hand = _field(raw, "rhand" if side == "right" else "lhand", path)
@@ -402,11 +406,10 @@ def _generic(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
         else:
             rotvec = np.asarray(_field(fields, "obj_rotvec", path), dtype=np.float64)
             trans = np.asarray(_field(fields, "obj_trans", path), dtype=np.float64)
-            pose = np.repeat(np.eye(4)[None], len(rotvec), axis=0)
             good = np.isfinite(rotvec).all(axis=1) & np.isfinite(trans).all(axis=1)
-            pose[good, :3, :3] = Rotation.from_rotvec(rotvec[good]).as_matrix()
-            pose[:, :3, 3] = trans
-            pose[~good] = np.nan
+            pose = np.full((len(rotvec), 4, 4), np.nan)
+            rotation = Rotation.from_rotvec(rotvec[good])
+            pose[good] = RigidTransform.from_components(trans[good], rotation).as_matrix()
         pose[:, :3, 3] *= scale
         if "valid" in fields:
             kp[~np.asarray(fields["valid"], dtype=bool)] = np.nan
@@ -452,9 +455,7 @@ def fingertip_surface_distance(seq: Sequence, mesh, frames: int = 40) -> np.ndar
     if len(valid) == 0:
         return np.zeros(0)
     chosen = valid[np.linspace(0, len(valid) - 1, min(frames, len(valid))).astype(int)]
-    inv = np.linalg.inv(seq.obj_pose[chosen])
-    tips = seq.keypoints[chosen][:, list(FINGERTIPS)]
-    local = np.einsum("tij,tkj->tki", inv[:, :3, :3], tips) + inv[:, None, :3, 3]
+    local = world_to_object(seq.keypoints[chosen][:, list(FINGERTIPS)], seq.obj_pose[chosen])
     return signed_distance(mesh, local).min(axis=1)
 
 

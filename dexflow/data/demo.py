@@ -29,7 +29,7 @@ files.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -38,14 +38,16 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from dexflow.data.grasps import GRASP_TYPES, Grasp, synthesize_grasp
 from dexflow.data.ycb_standins import STANDINS, build_standin
+from dexflow.geometry import world_to_object
 from dexflow.human.keypoints import FINGER_KEYPOINTS, FINGERS
 from dexflow.human.model import HandShape, finger_capsules, forward_keypoints
 from dexflow.io.atomic import save_json
+from dexflow.io.layout import Layout, StageDir
 from dexflow.io.sequence import Sequence, save_sequence
 from dexflow.objects.mesh import write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
-from dexflow.params import DemoConfig
-from dexflow.io.layout import StageDir
+from dexflow.params import DemoConfig, PipelineParams
+from dexflow.runner import StageSpec
 
 if TYPE_CHECKING:
     from dexflow.params import RunParams
@@ -194,10 +196,7 @@ def _make_sequence(
     keypoints = forward_keypoints(template.angles(annotated_closure), wrist, shape)
 
     # Ground truth contact from the clean hand's skin, in the object's frame.
-    world_to_obj = np.linalg.inv(obj_pose)
-    kp_obj = (
-        np.einsum("tij,tkj->tki", world_to_obj[:, :3, :3], clean_kp) + world_to_obj[:, None, :3, 3]
-    )
+    kp_obj = world_to_object(clean_kp, obj_pose)
     skin, radii = finger_capsules(kp_obj, shape)
     skin_dist = (sdf.query(skin) - radii).min(axis=-1)  # (T, 5)
     gt_contact = skin_dist <= cfg.contact_tolerance_m
@@ -453,3 +452,57 @@ def generate_demo(cfg: DemoConfig, out_dir: str | Path, run: int | RunParams = 1
     }
     save_json(Path(out_dir) / "index.json", manifest)
     return manifest
+
+
+# Objects shown in reports/figures/demo.png (when the demo has them): one per kind of shape.
+FIGURE_OBJECTS = (
+    "025_mug",
+    "024_bowl",
+    "011_banana",
+    "005_tomato_soup_can",
+    "051_large_clamp",
+    "006_mustard_bottle",
+)
+
+
+def run_demo(params: PipelineParams, layout: Layout) -> dict:
+    """Stage runner: generate the demo into ``layout.data`` (from scratch) and draw
+    ``reports/figures/demo.png``.
+
+    Returns:
+        The stage's metrics: ``objects``, ``sequences``, ``frames`` and the frames of each kind of
+        annotation fault (``dropout_frames``, ``tracking_lost_frames``, ``template_frames``).
+    """
+    from dexflow.plots import plot_sequence_frames
+
+    out = layout.data.root
+    if out.exists():
+        shutil.rmtree(out)
+    manifest = generate_demo(params.demo, out, params.run)
+    entries = manifest["sequences"]
+    names = [e["name"] for e in entries]
+    shown = [n for n in names if n.split("__")[0] in FIGURE_OBJECTS] or names
+    plot_sequence_frames(out, shown[:: max(1, len(shown) // 6)][:6], layout.figures / "demo.png")
+    return {
+        "objects": len(manifest["objects"]),
+        "sequences": manifest["num_sequences"],
+        "frames": manifest["num_frames"],
+        "dropout_frames": sum(e["dropout_frames"] for e in entries),
+        "tracking_lost_frames": sum(e["tracking_lost_frames"] for e in entries),
+        "template_frames": sum(e["template_frames"] for e in entries),
+    }
+
+
+STAGE = StageSpec(
+    name="demo",
+    run=run_demo,
+    metric_keys=(
+        "objects",
+        "sequences",
+        "frames",
+        "dropout_frames",
+        "tracking_lost_frames",
+        "template_frames",
+    ),
+    describe=lambda s: f"{s['sequences']} sequences, {s['frames']} frames, {s['objects']} objects",
+)

@@ -53,7 +53,7 @@ class GraspTemplate:
         open_ = np.asarray(self.open)
         closed = np.asarray(self.closed)
         closure = np.asarray(closure, dtype=np.float64)[..., None]
-        return (open_ + closure * (closed - open_)).reshape(closure.shape[:-2] + (20,))
+        return (open_ + closure * (closed - open_)).reshape((*closure.shape[:-2], 20))
 
 
 def _template(name, closed_thumb, closed_finger, active, grasp_point, tucked=(), lateral=False):
@@ -73,14 +73,37 @@ def _template(name, closed_thumb, closed_finger, active, grasp_point, tucked=(),
 GRASP_TYPES: dict[str, GraspTemplate] = {
     t.name: t
     for t in (
-        _template("power", (0.9, 1.0, 0.7, 0.8), (0.0, 1.5, 1.7, 1.0), (0, 1, 2, 3, 4),
-                  (0.040, 0.0, 0.095)),
-        _template("pinch", (0.55, 1.05, 0.45, 0.55), (0.0, 1.25, 1.1, 0.6), (0, 1),
-                  (0.060, 0.030, 0.125), tucked=(3, 4)),
-        _template("tripod", (0.55, 1.05, 0.45, 0.55), (0.0, 1.25, 1.1, 0.6), (0, 1, 2),
-                  (0.060, 0.015, 0.125), tucked=(4,)),
-        _template("lateral", (-0.25, 0.1, 0.55, 1.4), (0.0, 1.3, 1.5, 0.9), (0, 1),
-                  (0.047, 0.050, 0.106), lateral=True),
+        _template(
+            "power",
+            (0.9, 1.0, 0.7, 0.8),
+            (0.0, 1.5, 1.7, 1.0),
+            (0, 1, 2, 3, 4),
+            (0.040, 0.0, 0.095),
+        ),
+        _template(
+            "pinch",
+            (0.55, 1.05, 0.45, 0.55),
+            (0.0, 1.25, 1.1, 0.6),
+            (0, 1),
+            (0.060, 0.030, 0.125),
+            tucked=(3, 4),
+        ),
+        _template(
+            "tripod",
+            (0.55, 1.05, 0.45, 0.55),
+            (0.0, 1.25, 1.1, 0.6),
+            (0, 1, 2),
+            (0.060, 0.015, 0.125),
+            tucked=(4,),
+        ),
+        _template(
+            "lateral",
+            (-0.25, 0.1, 0.55, 1.4),
+            (0.0, 1.3, 1.5, 0.9),
+            (0, 1),
+            (0.047, 0.050, 0.106),
+            lateral=True,
+        ),
     )
 }
 
@@ -186,7 +209,9 @@ def synthesize_grasp(
 
     azimuths = rng.uniform(0, 2 * np.pi) + np.arange(n_azimuths) * 2 * np.pi / n_azimuths
     approaches = [np.array([np.cos(a), np.sin(a), rng.uniform(-0.35, 0.0)]) for a in azimuths]
-    approaches += [np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), -1.0]) for _ in range(2)]
+    approaches += [
+        np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), -1.0]) for _ in range(2)
+    ]
     rotations, translations, used_approach = [], [], []
     for approach in approaches:
         approach = approach / np.linalg.norm(approach)

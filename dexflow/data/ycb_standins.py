@@ -76,7 +76,10 @@ def _banana() -> trimesh.Trimesh:
     binormal = np.cross(tangent, normal)
     radius = 0.01835 * (0.25 + 0.75 * np.sin(np.pi * t) ** 0.5)
     phi = np.linspace(0.0, 2 * np.pi, n_side, endpoint=False)
-    ring = (np.cos(phi)[None, :, None] * normal[:, None] + np.sin(phi)[None, :, None] * binormal[:, None])
+    ring = (
+        np.cos(phi)[None, :, None] * normal[:, None]
+        + np.sin(phi)[None, :, None] * binormal[:, None]
+    )
     vertices = (centre[:, None] + radius[:, None, None] * ring).reshape(-1, 3)
     faces = []
     for i in range(n_ring - 1):
@@ -153,29 +156,63 @@ class Standin:
 STANDINS: dict[str, Standin] = {
     s.name: s
     for s in (
-        Standin("002_master_chef_can", (140.1, 102.4, 102.3), _master_chef_can,
-                ("power", "tripod", "lateral"), watertight=False),
-        Standin("003_cracker_box", (213.5, 164.0, 71.7), _cracker_box, ("power", "pinch", "lateral")),
+        Standin(
+            "002_master_chef_can",
+            (140.1, 102.4, 102.3),
+            _master_chef_can,
+            ("power", "tripod", "lateral"),
+            watertight=False,
+        ),
+        Standin(
+            "003_cracker_box", (213.5, 164.0, 71.7), _cracker_box, ("power", "pinch", "lateral")
+        ),
         Standin("004_sugar_box", (176.0, 94.0, 49.5), _sugar_box, ("power", "pinch", "tripod")),
-        Standin("005_tomato_soup_can", (102.0, 67.9, 67.8), _tomato_soup_can,
-                ("power", "tripod", "pinch")),
-        Standin("006_mustard_bottle", (191.4, 97.2, 66.6), _mustard_bottle,
-                ("power", "tripod", "lateral")),
-        Standin("010_potted_meat_can", (102.1, 83.6, 60.3), _potted_meat_can,
-                ("power", "pinch", "tripod")),
+        Standin(
+            "005_tomato_soup_can",
+            (102.0, 67.9, 67.8),
+            _tomato_soup_can,
+            ("power", "tripod", "pinch"),
+        ),
+        Standin(
+            "006_mustard_bottle",
+            (191.4, 97.2, 66.6),
+            _mustard_bottle,
+            ("power", "tripod", "lateral"),
+        ),
+        Standin(
+            "010_potted_meat_can",
+            (102.1, 83.6, 60.3),
+            _potted_meat_can,
+            ("power", "pinch", "tripod"),
+        ),
         Standin("011_banana", (178.4, 108.9, 36.7), _banana, ("power", "pinch", "tripod")),
-        Standin("021_bleach_cleanser", (250.6, 102.4, 67.7), _bleach_cleanser,
-                ("power", "lateral", "tripod")),
-        Standin("024_bowl", (161.4, 161.1, 55.0), _bowl, ("pinch", "tripod", "lateral"),
-                watertight=False),
-        Standin("025_mug", (117.0, 93.1, 81.4), _mug, ("power", "pinch", "tripod"), watertight=False),
-        Standin("051_large_clamp", (171.3, 120.0, 39.2), _large_clamp, ("pinch", "lateral", "power")),
+        Standin(
+            "021_bleach_cleanser",
+            (250.6, 102.4, 67.7),
+            _bleach_cleanser,
+            ("power", "lateral", "tripod"),
+        ),
+        Standin(
+            "024_bowl",
+            (161.4, 161.1, 55.0),
+            _bowl,
+            ("pinch", "tripod", "lateral"),
+            watertight=False,
+        ),
+        Standin(
+            "025_mug", (117.0, 93.1, 81.4), _mug, ("power", "pinch", "tripod"), watertight=False
+        ),
+        Standin(
+            "051_large_clamp", (171.3, 120.0, 39.2), _large_clamp, ("pinch", "lateral", "power")
+        ),
         Standin("061_foam_brick", (77.8, 52.6, 51.1), _foam_brick, ("power", "pinch", "tripod")),
     )
 }
 
 
-def _punch_holes(mesh: trimesh.Trimesh, rng: np.random.Generator, count: int = 3) -> trimesh.Trimesh:
+def _punch_holes(
+    mesh: trimesh.Trimesh, rng: np.random.Generator, count: int = 3
+) -> trimesh.Trimesh:
     """Remove a few small patches of faces, the way a scan misses the parts a camera cannot see."""
     keep = np.ones(len(mesh.faces), dtype=bool)
     centers = mesh.triangles_center

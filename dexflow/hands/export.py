@@ -31,8 +31,7 @@ def _fmt(values) -> str:
 
 
 def _origin(parent: ET.Element, pos, quat_wxyz) -> None:
-    w, x, y, z = quat_wxyz
-    rpy = Rotation.from_quat([x, y, z, w]).as_euler("xyz")
+    rpy = Rotation.from_quat(quat_wxyz, scalar_first=True).as_euler("xyz")
     ET.SubElement(parent, "origin", xyz=_fmt(pos), rpy=_fmt(rpy))
 
 

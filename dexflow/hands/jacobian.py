@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from dexflow.errors import HandConfigError
-from dexflow.hands.robot import RobotHand, _rotation
+from dexflow.hands.robot import RobotHand, base_transform
 
 __all__ = ["KeypointJacobian"]
 
@@ -68,8 +68,7 @@ class KeypointJacobian:
         q = hand.as_q(q)
         ret = hand.chain.forward_kinematics(q[:, 6:], frame_indices=self._pk_indices)
         local = torch.stack([ret[n].get_matrix() for n in self._frames], dim=1)  # (T, F, 4, 4)
-        rx, ry, rz = _rotation(0, q[:, 3]), _rotation(1, q[:, 4]), _rotation(2, q[:, 5])
-        rot_base = rx @ ry @ rz
+        rot_base = base_transform(q[:, :6])[:, :3, :3]
         pos_base = q[:, :3]
         world_rot = rot_base[:, None] @ local[..., :3, :3]
         world_pos = (rot_base[:, None] @ local[..., :3, 3:])[..., 0] + pos_base[:, None]
@@ -88,9 +87,9 @@ class KeypointJacobian:
         t, k = keypoints.shape[:2]
         jac = torch.zeros(t, k, 3, hand.dof, dtype=q.dtype, device=q.device)
         jac[:, :, :, :3] = torch.eye(3, dtype=q.dtype, device=q.device)
-        base_axes = torch.stack(
-            [rx[:, :, 0], (rx @ ry)[:, :, 1], rot_base[:, :, 2]], dim=1
-        )  # (T,3,3)
+        # The base's rotation axes x, Rx y, Rx Ry z: each moved by the rotations before it.
+        rot_x = base_transform(q[:, :6] * q.new_tensor([0, 0, 0, 1, 0, 0]))[:, :3, :3]  # Rx
+        base_axes = torch.stack([rot_x[:, :, 0], rot_x[:, :, 1], rot_base[:, :, 2]], dim=1)
         arm = keypoints - pos_base[:, None]
         for i in range(3):
             jac[:, :, :, 3 + i] = torch.cross(base_axes[:, i, None].expand_as(arm), arm, dim=-1)

@@ -17,7 +17,7 @@ import pytorch_kinematics as pk
 import trimesh
 from pytorch_kinematics import frame as pk_frame
 from pytorch_kinematics import transforms as pk_tf
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import RigidTransform, Rotation
 
 from dexflow.errors import HandConfigError
 
@@ -117,14 +117,6 @@ def _primitive(kind: str, size: tuple[float, ...], transform: np.ndarray) -> tri
     return mesh
 
 
-def _pose(pos, quat_wxyz) -> np.ndarray:
-    out = np.eye(4)
-    w, x, y, z = quat_wxyz
-    out[:3, :3] = Rotation.from_quat([x, y, z, w]).as_matrix()
-    out[:3, 3] = pos
-    return out
-
-
 # ---------------------------------------------------------------------------------------- MJCF
 
 _MJ_GEOM = {2: "sphere", 3: "capsule", 5: "cylinder", 6: "box", 7: "mesh"}
@@ -191,7 +183,8 @@ def _mjcf_geometries(m, body_ids: set[int]) -> list[Geometry]:
         kind = _MJ_GEOM.get(int(m.geom_type[g]))
         if kind is None:
             continue
-        transform = _pose(m.geom_pos[g], m.geom_quat[g])
+        rotation = Rotation.from_quat(m.geom_quat[g], scalar_first=True)  # MuJoCo: w, x, y, z
+        transform = RigidTransform.from_components(m.geom_pos[g], rotation).as_matrix()
         if kind == "mesh":
             mesh_id = int(m.geom_dataid[g])
             va, vn = int(m.mesh_vertadr[mesh_id]), int(m.mesh_vertnum[mesh_id])
@@ -245,10 +238,8 @@ def _origin(element) -> np.ndarray:
     rpy = (
         [float(v) for v in origin.get("rpy", "0 0 0").split()] if origin is not None else [0, 0, 0]
     )
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()
-    out[:3, 3] = xyz
-    return out
+    # URDF rpy: roll, pitch, yaw about the fixed x, y, z axes (extrinsic), R = Rz Ry Rx.
+    return RigidTransform.from_components(xyz, Rotation.from_euler("xyz", rpy)).as_matrix()
 
 
 def _urdf_mesh_path(filename: str, urdf_dir: Path) -> Path:

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
+from pytorch_kinematics.transforms import euler_angles_to_matrix
 
 from dexflow.errors import HandConfigError
 from dexflow.hands.model import KinematicModel, load_kinematic_model, resolve_model_path
@@ -41,20 +42,12 @@ def _names_or_error(hand: str, kind: str, names, known) -> None:
         )
 
 
-def _rotation(axis: int, angle: torch.Tensor) -> torch.Tensor:
-    c, s = torch.cos(angle), torch.sin(angle)
-    one, zero = torch.ones_like(angle), torch.zeros_like(angle)
-    rows = {
-        0: ((one, zero, zero), (zero, c, -s), (zero, s, c)),
-        1: ((c, zero, s), (zero, one, zero), (-s, zero, c)),
-        2: ((c, -s, zero), (s, c, zero), (zero, zero, one)),
-    }[axis]
-    return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
-
-
 def base_transform(q_base: torch.Tensor) -> torch.Tensor:
-    """(B, 4, 4) floating-base transforms from the six dummy joints ``q_base (B, 6)``."""
-    rot = _rotation(0, q_base[:, 3]) @ _rotation(1, q_base[:, 4]) @ _rotation(2, q_base[:, 5])
+    """(B, 4, 4) floating-base transforms from the six dummy joints ``q_base (B, 6)``.
+
+    The rotation is ``Rx Ry Rz`` of the three rotation joints: intrinsic x-y-z Euler angles.
+    """
+    rot = euler_angles_to_matrix(q_base[:, 3:6], "XYZ")
     out = torch.zeros(q_base.shape[0], 4, 4, dtype=q_base.dtype, device=q_base.device)
     out[:, :3, :3] = rot
     out[:, :3, 3] = q_base[:, :3]

@@ -1,4 +1,4 @@
-"""A robot hand described as data: the schema of ``conf/hand/<name>.yaml`` (DESIGN §5).
+"""A robot hand described as data: the schema of ``conf/hand/<name>.yaml``.
 
 Everything about a hand that dexflow needs and its model file does not say: which links stand
 for which human keypoints, the fingers (ordered thumb to little) with their joints and contact

@@ -6,8 +6,9 @@ pickle some arrays as ``chumpy`` objects; they are read without chumpy installed
 
 Joints: the 16 skeleton joints ``J_regressor @ v_shaped`` posed by forward kinematics along
 ``kintree_table`` (Rodrigues rotations), then the five fingertips taken from posed vertices
-(linear blend skinning), as in the common MANO layers. The output is in MANO order with tips
-(dexflow's keypoint order, DESIGN §2).
+(linear blend skinning), as in the common MANO layers. The output is in MANO order with tips,
+dexflow's keypoint order: the wrist, then thumb to little finger four keypoints each from the
+palm outwards, the tip last (:data:`dexflow.human.keypoints.KEYPOINT_NAMES`).
 """
 
 from __future__ import annotations

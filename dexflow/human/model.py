@@ -2,8 +2,9 @@
 
 The model is a kinematic skeleton with adult bone lengths, not a mesh. It exists so that dexflow
 can generate realistic demonstrations without licensed MANO files. The frame is the canonical
-wrist frame of a right hand (DESIGN §2): x out of the palm, y towards the index, z towards the
-fingers. Every finger flexes towards +x.
+wrist frame of a right hand (:func:`dexflow.human.keypoints.wrist_frame`): origin at the wrist,
+z from the wrist to the middle MCP, y towards the index MCP (orthogonalised against z), and
+x = y × z, out of the palm. Every finger flexes towards +x.
 
 Joint angles, radians, in :data:`JOINT_NAMES` order (per finger: abduction or the thumb's
 carpometacarpal pair, then flexion from the palm outwards). Each finger segment is a capsule
@@ -15,7 +16,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from dexflow.geometry import transform_points
 from dexflow.human.keypoints import FINGER_KEYPOINTS, FINGERS, NUM_KEYPOINTS
 
 __all__ = ["JOINT_NAMES", "HandShape", "finger_capsules", "forward_keypoints"]
@@ -72,33 +75,6 @@ class HandShape:
     scale: float = 1.0
 
 
-def _rot_x(angle: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    out = np.zeros((*np.shape(angle), 3, 3))
-    out[..., 0, 0] = 1.0
-    out[..., 1, 1], out[..., 1, 2] = c, -s
-    out[..., 2, 1], out[..., 2, 2] = s, c
-    return out
-
-
-def _rot_y(angle: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    out = np.zeros((*np.shape(angle), 3, 3))
-    out[..., 1, 1] = 1.0
-    out[..., 0, 0], out[..., 0, 2] = c, s
-    out[..., 2, 0], out[..., 2, 2] = -s, c
-    return out
-
-
-def _rot_z(angle: np.ndarray) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    out = np.zeros((*np.shape(angle), 3, 3))
-    out[..., 2, 2] = 1.0
-    out[..., 0, 0], out[..., 0, 1] = c, -s
-    out[..., 1, 0], out[..., 1, 1] = s, c
-    return out
-
-
 def _thumb_base_rotation() -> np.ndarray:
     """Rest frame of the thumb metacarpal: z along the bone, x across the palm, y palmar."""
     z = np.array([0.20, 0.55, 0.80])
@@ -134,28 +110,26 @@ def forward_keypoints(
     kp = np.zeros((*batch, NUM_KEYPOINTS, 3))
     for i, finger in enumerate(FINGERS):
         a = angles[..., 4 * i : 4 * i + 4]
-        if finger == "thumb":
-            rot = (
-                _THUMB_BASE
-                @ _rot_y(a[..., 0])
-                @ _rot_x(-a[..., 1])
-                @ _rot_z(_THUMB_PRONATION_PER_ABDUCTION * a[..., 1])
-            )
-            flex = (a[..., 2], a[..., 3])
-        else:
-            rot = _rot_x(-(shape.spread[finger] + a[..., 0])) @ _rot_y(a[..., 1])
-            flex = (a[..., 2], a[..., 3])
+        # Intrinsic Euler angles (upper-case axes): the product Ra Rb ... of elementary rotations.
+        if finger == "thumb":  # flexion (y), abduction (-x) and the pronation it brings (z)
+            pronation = _THUMB_PRONATION_PER_ABDUCTION * a[..., 1]
+            euler = np.stack([a[..., 0], -a[..., 1], pronation], axis=-1)
+            rot = _THUMB_BASE @ Rotation.from_euler("YXZ", euler).as_matrix()
+        else:  # splay about x, then MCP flexion about the new y
+            euler = np.stack([-(shape.spread[finger] + a[..., 0]), a[..., 1]], axis=-1)
+            rot = Rotation.from_euler("XY", euler).as_matrix()
+        flex = (a[..., 2], a[..., 3])
         chain = FINGER_KEYPOINTS[finger]
         pos = np.broadcast_to(shape.bases[finger] * shape.scale, (*batch, 3))
         kp[..., chain[0], :] = pos
         for j, length in enumerate(shape.bones[finger]):
             if j > 0:
-                rot = rot @ _rot_y(flex[j - 1])
+                rot = rot @ Rotation.from_euler("Y", flex[j - 1][..., None]).as_matrix()
             pos = pos + rot[..., :, 2] * (length * shape.scale)
             kp[..., chain[j + 1], :] = pos
     if wrist_pose is not None:
         wrist_pose = np.asarray(wrist_pose, dtype=np.float64)
-        kp = kp @ np.swapaxes(wrist_pose[..., :3, :3], -1, -2) + wrist_pose[..., None, :3, 3]
+        kp = transform_points(wrist_pose, kp)
     return kp
 
 

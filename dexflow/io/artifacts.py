@@ -18,6 +18,7 @@ Paths come from :mod:`dexflow.io.layout`.
 
 from __future__ import annotations
 
+import zipfile
 from collections.abc import Sequence as Names
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,8 +55,14 @@ def _load(path: Path, required: Names[str]) -> dict[str, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise ArtifactError(f"{path}: no such file (has the stage that writes it run?)")
-    with np.load(path, allow_pickle=False) as data:
-        arrays = {k: data[k] for k in data.files}
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise ArtifactError(
+            f"{path}: not a readable .npz ({type(exc).__name__}: {exc}); rerun the stage that "
+            "writes it"
+        ) from exc
     missing = [k for k in required if k not in arrays]
     if missing:
         raise ArtifactError(f"{path}: missing {missing}; found {sorted(arrays)}")

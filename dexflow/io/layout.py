@@ -121,7 +121,12 @@ class StageDir:
     def object_key(self, obj_mesh: str) -> str:
         """The object key of a sequence's ``obj_mesh`` (``objects/<key>/mesh.obj``)."""
         parts = Path(obj_mesh).parts
-        if len(parts) != 3 or parts[0] != "objects":
+        if (
+            len(parts) != 3
+            or parts[0] != "objects"
+            or parts[2] != "mesh.obj"
+            or parts[1] in ("..", ".")
+        ):
             raise ValueError(f"{obj_mesh!r}: expected objects/<key>/mesh.obj (stage scale_align)")
         return parts[1]
 

@@ -1,6 +1,6 @@
 """The canonical sequence format: one ``.npz`` per sequence, validated on load and on save.
 
-Fields (DESIGN §3):
+Fields:
 
 - ``keypoints (T, 21, 3) float64``: human hand keypoints in metres, MANO joint order, world frame.
   Frames where the tracker lost the hand may hold NaN, but only where ``valid`` is False.
@@ -64,7 +64,8 @@ class Sequence:
         valid: (T,) True where the hand was tracked; None means every frame.
         timestamps: (T,) seconds, if the capture was not sampled at a constant rate.
         gt_contact: (T, 5) ground-truth contact per finger (thumb..little), if known.
-        mirrored: True if a left hand was mirrored to a right one (DESIGN §2).
+        mirrored: True if a left hand was mirrored to a right one (x -> -x in the world,
+            :mod:`dexflow.data.mirror`).
         extras: Any further named arrays, saved and loaded unchanged.
     """
 
