@@ -261,13 +261,15 @@ def bench_refine(
 
 
 def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 6) -> list[dict]:
-    """Simulation throughput (frames evaluated per second, one core) on refined demo frames after
-    first contact: the stage's protocol with early exits against the same frames run through all
-    six full-length tests, measured in the same run. Needs `dvc repro`."""
+    """Grasp-test throughput (tested frames per second, one core) of both engines on the same
+    refined demo frames after first contact, in one run: pybullet (the stage's protocol with
+    early exits, and all six full tests), MuJoCo (DexGraspBench's protocol), and the ratio of
+    MuJoCo to pybullet. Needs `dvc repro`."""
     import dataclasses
 
     from dexflow.config import load_params
     from dexflow.hands.robot import load_hand
+    from dexflow.mujoco_world import MujocoGraspWorld
     from dexflow.simulate import GraspWorld, hand_urdf
 
     torch.set_num_threads(1)
@@ -279,26 +281,35 @@ def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 
         picked = np.linspace(contact[0], contact[-1], frames).round().astype(int)
         jobs.append((assets.paths.convex, q, seq, picked))
 
-    def run(p) -> tuple[float, int]:
-        world = GraspWorld(hand, hand_urdf(hand), p)
-        tests, start = 0, time.perf_counter()
+    def run(world) -> tuple[float, int, int]:
+        tests = held = 0
+        start = time.perf_counter()
         for convex, q, seq, picked in jobs:
             world.set_object(convex)
             for t in picked:
-                tests += int(world.test_frame(q[t], seq.obj_pose[t])["tested"].sum())
+                result = world.test_frame(q[t], seq.obj_pose[t])
+                tests += int(result["tested"].sum())
+                held += int(result["bench"])
+        seconds = time.perf_counter() - start
         world.close()
-        return len(jobs) * frames / (time.perf_counter() - start), tests
+        return len(jobs) * frames / seconds, tests, held
 
-    fast, fast_tests = run(params)
-    full, full_tests = run(dataclasses.replace(params, early_exit=False))
+    fast, fast_tests, fast_held = run(GraspWorld(hand, hand_urdf(hand), params))
+    full_params = dataclasses.replace(params, early_exit=False)
+    full, full_tests, _ = run(GraspWorld(hand, hand_urdf(hand), full_params))
+    mujoco, mujoco_tests, mujoco_held = run(MujocoGraspWorld(hand, params))
     n = len(jobs) * frames
     print(f"hand {hand_name}, {n} refined frames after first contact, 1 thread")
-    print(f"simulate, early exits (the stage): {fast:7.2f} frames/s ({fast_tests} direction tests)")
-    print(f"simulate, all six full tests:      {full:7.2f} frames/s ({full_tests} direction tests)")
-    print(f"early exits / full:                {fast / full:7.2f}x")
+    print(f"pybullet, early exits (the stage): {fast:7.2f} frames/s ({fast_tests} direction tests, "
+          f"{fast_held} frames hold by DexGraspBench's criterion)")  # fmt: skip
+    print(f"pybullet, all six full tests:      {full:7.2f} frames/s ({full_tests} direction tests)")
+    print(f"mujoco (DexGraspBench protocol):   {mujoco:7.2f} frames/s ({mujoco_tests} direction "
+          f"tests, {mujoco_held} frames hold)")  # fmt: skip
+    print(f"mujoco / pybullet (early exits):   {mujoco / fast:7.2f}x")
+    print(f"pybullet early exits / full:       {fast / full:7.2f}x")
     steps = full_tests * params.substeps * (params.control_steps + params.settle_steps)
-    print(f"physics steps/s (full):            {steps * full / n:7.0f}")
-    return [{"early_exit_fps": fast, "full_fps": full}]
+    print(f"pybullet physics steps/s (full):   {steps * full / n:7.0f}")
+    return [{"early_exit_fps": fast, "full_fps": full, "mujoco_fps": mujoco}]
 
 
 PAPER_FRAMES = 292_000  # the DexFlow dataset: 292K frames over 50 objects

@@ -17,6 +17,7 @@ from dexflow.hands.spec import HandSpec as HandParams
 
 __all__ = [
     "DATA_GENERATORS",
+    "ENGINES",
     "ContactParams",
     "ConvexParams",
     "DataParams",
@@ -24,6 +25,8 @@ __all__ = [
     "GlobalSearchParams",
     "HandParams",
     "MetricsParams",
+    "MujocoParams",
+    "PerturbationParams",
     "PipelineParams",
     "RefineParams",
     "RetargetParams",
@@ -321,9 +324,76 @@ class RefineParams:
     release_iterations: int = 60
 
 
+ENGINES = ("pybullet", "mujoco")
+
+
+@dataclass
+class MujocoParams:
+    """The MuJoCo grasp test (``simulate.mujoco``): DexGraspBench's published settings.
+
+    Attributes:
+        timestep_s: Physics time step (DexGraspBench: 0.004 s).
+        impratio: Ratio of frictional to normal constraint impedance (10).
+        kp: Position gain of every hand joint's actuator, N·m/rad (5).
+        joint_damping: Damping of every hand joint, N·m·s/rad (added to the model's own).
+        object_mass_kg: Object mass, uniform density over its convex parts (0.1 kg).
+        friction: Sliding and torsional friction of every geom (0.6, 0.02), elliptic cones.
+        force_scale: The pushes: a force of ``force_scale * object_mass_kg`` newtons along each
+            of ±x, ±y, ±z (10, about the object's weight), gravity off.
+        close_steps: Control steps from the pre-grasp to the grasp and from the grasp to the
+            squeeze pose (10 each), ...
+        steps_per_control: ... each this many physics steps (10).
+        hold_checks: Checks of the object's pose while a force acts (10), ...
+        steps_per_check: ... each after this many physics steps (50): 2 s per direction.
+    """
+
+    timestep_s: float = 0.004
+    impratio: float = 10.0
+    kp: float = 5.0
+    joint_damping: float = 0.1
+    object_mass_kg: float = 0.1
+    friction: tuple[float, float] = (0.6, 0.02)
+    force_scale: float = 10.0
+    close_steps: int = 10
+    steps_per_control: int = 10
+    hold_checks: int = 10
+    steps_per_check: int = 50
+
+
+@dataclass
+class PerturbationParams:
+    """Robust success (``simulate.perturbations``): a frame succeeds only if it succeeds in the
+    nominal test and under every one of ``count`` perturbed copies of it.
+
+    Attributes:
+        count: Perturbed trials per frame (0: the single nominal trial).
+        position_m: Object offset of each trial, uniform in a ball of this radius.
+        rotation_deg: Object rotation of each trial, about a random axis, up to this angle.
+        friction_rel: Friction of each trial scaled by a factor within 1 ± this.
+        seed: Seed of the perturbations (per frame: the same frame gets the same trials).
+    """
+
+    count: int = 0
+    position_m: float = 0.001
+    rotation_deg: float = 2.0
+    friction_rel: float = 0.1
+    seed: int = 0
+
+
 @dataclass
 class SimulateParams:
-    """Stage ``simulate`` (``simulate`` in params.yaml)."""
+    """Stage ``simulate`` (``simulate`` in params.yaml).
+
+    ``engines`` lists the physics engines that test every frame (the first one's result is the
+    stage's SSR; with two, the report shows their per-frame agreement); ``mujoco`` holds the
+    MuJoCo protocol's settings, the other fields pybullet's (``penetration_tol_m``, ``stride``,
+    ``early_stop``, ``max_frames``, ``push_m``, ``contact_margin_m``, ``max_displacement_m``,
+    ``max_rotation_deg`` apply to both).
+    """
+
+    engines: list[str] = field(default_factory=lambda: ["pybullet"])
+    mujoco: MujocoParams = field(default_factory=MujocoParams)
+    perturbations: PerturbationParams = field(default_factory=PerturbationParams)
 
     control_dt_s: float = 1.0 / 60.0
     substeps: int = 4
@@ -351,6 +421,24 @@ class SimulateParams:
 
 
 def _validate_simulate(s: SimulateParams) -> None:
+    unknown = [e for e in s.engines if e not in ENGINES]
+    _require(bool(s.engines) and not unknown, "simulate.engines", f"engines among {list(ENGINES)}",
+             s.engines)  # fmt: skip
+    _require(len(set(s.engines)) == len(s.engines), "simulate.engines", "no repeats", s.engines)
+    m = s.mujoco
+    for key in ("timestep_s", "impratio", "kp", "object_mass_kg", "force_scale"):
+        _require(getattr(m, key) > 0, f"simulate.mujoco.{key}", "> 0", getattr(m, key))
+    _require(m.joint_damping >= 0, "simulate.mujoco.joint_damping", ">= 0", m.joint_damping)
+    _require(len(m.friction) == 2 and min(m.friction) >= 0, "simulate.mujoco.friction",
+             "[sliding, torsional], both >= 0", m.friction)  # fmt: skip
+    for key in ("close_steps", "steps_per_control", "hold_checks", "steps_per_check"):
+        _require(getattr(m, key) >= 1, f"simulate.mujoco.{key}", ">= 1", getattr(m, key))
+    pt = s.perturbations
+    _require(pt.count >= 0, "simulate.perturbations.count", ">= 0", pt.count)
+    for key in ("position_m", "rotation_deg"):
+        _require(getattr(pt, key) >= 0, f"simulate.perturbations.{key}", ">= 0", getattr(pt, key))
+    _require(0 <= pt.friction_rel < 1, "simulate.perturbations.friction_rel", "within [0, 1)",
+             pt.friction_rel)  # fmt: skip
     for key in ("control_dt_s", "gravity", "object_mass_kg", "motor_force", "base_max_force"):
         _require(getattr(s, key) > 0, f"simulate.{key}", "> 0", getattr(s, key))
     non_negative = ("friction", "position_gain", "velocity_gain", "push_m", "contact_margin_m",

@@ -143,10 +143,11 @@ def write_summary(
         "Paper rows: DexFlow on DexYCB with ShadowHand, as published (the paper's PD/SPD/CD "
         "units are given as printed; its FVR is undefined there). " + _data_caveat(demo, data),
         "",
-        "## Simulation (pybullet, six gravity directions)",
+        f"## Simulation ({_engines_title(stage)}, six push directions)",
         "",
         *_simulation_table(stage),
         "",
+        *_engines_section(stage),
         "A tested frame counts only if it starts with the hand at most `simulate.penetration_tol_m` "
         "inside the object (links wedged inside an object hold it without a grasp); *without the "
         "rule* counts every tested frame. Starting penetration is the deepest point of the hand's "
@@ -225,6 +226,58 @@ def _method_table(metrics: dict, keys, paper: bool) -> list[str]:
                 cells.append(str(published[key]) if key in published else "")
             lines.append(f"| *{label}* | " + " | ".join(cells) + " |")
     return lines
+
+
+def _simulated(stage: dict) -> dict[str, dict]:
+    return {m: stage[f"simulate_{m}"] for m in METHOD_LABELS if stage.get(f"simulate_{m}")}
+
+
+def _engines_title(stage: dict) -> str:
+    engines = next((s.get("engines") for s in _simulated(stage).values()), None) or ["pybullet"]
+    return " and ".join(engines) + (" (SSR: the first)" if len(engines) > 1 else "")
+
+
+def _engines_section(stage: dict) -> list[str]:
+    """Per engine SSR and the share of frames whose single trial a perturbation overturns;
+    with two engines, their per-frame agreement (DexGraspBench criterion)."""
+    simulated = _simulated(stage)
+    engines = next((s.get("engines") for s in simulated.values()), None) or []
+    trials = next((s.get("perturbations", 0) for s in simulated.values()), 0)
+    if len(engines) < 2 and not trials:
+        return []
+    lines = [
+        "### Engines and robustness",
+        "",
+        f"Every tested frame ran in {', '.join(engines)}; a frame succeeds only if it succeeds in "
+        f"the nominal trial and in each of {trials} perturbed trials (`simulate.perturbations`: "
+        "the object moved and turned a little, the friction scaled). *Flipped*: frames whose "
+        "nominal result the perturbations overturn.",
+        "",
+        "| method | engine | SSR % | SSR DexGraspBench % | frames flipped % |",
+        "|---|---|---|---|---|",
+    ]
+    for method, sim in simulated.items():
+        for engine in engines:
+            cells = [_cell(sim.get(f"{k}_{engine}")) for k in ("ssr", "ssr_bench")]
+            flipped = sim.get(f"flipped_{engine}")
+            cells.append("—" if flipped is None else _cell(100 * flipped, 1))
+            lines.append(f"| {METHOD_LABELS[method]} | {engine} | " + " | ".join(cells) + " |")
+    if len(engines) > 1:
+        lines += [
+            "",
+            f"Per-frame agreement of {engines[0]} and {engines[1]} (DexGraspBench criterion):",
+            "",
+            "| method | frames | both hold | both drop | disagree |",
+            "|---|---|---|---|---|",
+        ]
+        for method, sim in simulated.items():
+            counts = [int(sim.get(k, 0)) for k in ("agree_hold", "agree_drop", "disagree")]
+            lines.append(
+                f"| {METHOD_LABELS[method]} | {sum(counts)} | "
+                + " | ".join(map(str, counts))
+                + " |"
+            )
+    return [*lines, ""]
 
 
 def _simulation_table(stage: dict) -> list[str]:

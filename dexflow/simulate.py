@@ -1,5 +1,19 @@
 """Stage simulate (paper §IV-B): does a frame's grasp hold the object in a physics engine?
 
+Engines (``simulate.engines``, conf group ``simulate=default|mujoco|both``): pybullet with the
+protocol below (:class:`GraspWorld`), and MuJoCo with DexGraspBench's published protocol
+(:class:`dexflow.mujoco_world.MujocoGraspWorld`), so that SSR compares with BODex and
+DexGraspBench. Every engine tests the same frames; the first engine's result is the stage's SSR,
+and with two the summary counts the frames on which they agree (both hold, both drop) or not,
+by the DexGraspBench criterion.
+
+Robust success (``simulate.perturbations``): each frame is tested nominally and in ``count``
+perturbed trials (object moved by up to ``position_m`` and turned by up to ``rotation_deg``,
+friction scaled within ``1 ± friction_rel``; the same trials in every engine, seeded by the
+frame); a criterion holds for the frame only if it holds in every trial, so that a grasp that
+holds or drops on float noise is not counted. The nominal results are kept (``*_single``) and
+the share of frames the perturbations overturn is reported (``flipped``).
+
 pybullet, headless (DIRECT). The hand is loaded from its URDF (MJCF hands are exported to URDF
 by :func:`dexflow.hands.export.export_urdf`), its floating base held at the frame's pose by a
 fixed constraint and its joints under position control. Links of the URDF without
@@ -55,6 +69,7 @@ import logging
 import shutil
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +80,7 @@ from scipy.spatial.transform import Rotation
 from dexflow.errors import HandConfigError
 from dexflow.hands.robot import RobotHand, base_transform, cached_hand
 from dexflow.io.artifacts import (
+    ENGINE_KEYS,
     SIMULATION_KEYS,
     ObjectAssets,
     SimulationResult,
@@ -75,6 +91,7 @@ from dexflow.io.artifacts import (
 from dexflow.io.layout import Layout
 from dexflow.io.sequence import load_sequence
 from dexflow.measures import penetration_depth, surface_distances
+from dexflow.mujoco_world import MujocoGraspWorld, Perturbation, perturbations
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import PipelineParams, SimulateParams
 from dexflow.resume import StageOutput
@@ -152,11 +169,14 @@ class GraspWorld:
         params: The protocol's parameters.
     """
 
+    engine = "pybullet"
+
     def __init__(self, hand: RobotHand, urdf: str | Path, params: SimulateParams) -> None:
         import pybullet as pb
         from pybullet_utils.bullet_client import BulletClient
 
         self.pb, self.hand, self.params, self.urdf = pb, hand, params, str(urdf)
+        self._friction = params.friction  # of the trial being run (perturbations scale it)
         self.client = BulletClient(connection_mode=pb.DIRECT)
         self.client.setPhysicsEngineParameter(deterministicOverlappingPairs=1)
         self._object_parts: list[np.ndarray] | None = None
@@ -190,7 +210,7 @@ class GraspWorld:
         self.joint_ids = [joints[n] for n in self.hand.hand_joint_names]
         self.link_names = {i: n for n, i in self.link_index.items()}
         for link in self.link_index.values():
-            c.changeDynamics(self.body, link, lateralFriction=p.friction)
+            c.changeDynamics(self.body, link, lateralFriction=self._friction)
         inertial = c.getDynamicsInfo(self.body, -1)
         self._base_inertial = _matrix(inertial[3], inertial[4])
         pos, orn = _pose7(self._base_inertial)
@@ -250,7 +270,7 @@ class GraspWorld:
         c.changeDynamics(
             self.object,
             -1,
-            lateralFriction=self.params.friction,
+            lateralFriction=self._friction,
             localInertiaDiagonal=self._moments.tolist(),
             collisionMargin=0.0,  # pybullet's default 1 mm would inflate the parts
         )
@@ -331,12 +351,16 @@ class GraspWorld:
         out[:6] = q[:6]
         return out, penetration, links
 
-    def test_frame(self, q: np.ndarray, pose: np.ndarray) -> dict:
+    def test_frame(
+        self, q: np.ndarray, pose: np.ndarray, perturbation: Perturbation | None = None
+    ) -> dict:
         """Run the six-direction test for one frame.
 
         Args:
             q: (dof,) hand configuration (base then joints, as stage retarget writes it).
             pose: (4, 4) object pose in the world.
+            perturbation: Moves the object and scales the friction for this trial (None: the
+                nominal trial).
 
         Returns:
             ``parts_penetration_m`` (deepest overlap with the convex parts, a diagnostic; the
@@ -350,6 +374,9 @@ class GraspWorld:
             raise RuntimeError("GraspWorld.test_frame: set_object first")
         p, c = self.params, self.client
         q = np.asarray(q, dtype=float)
+        if perturbation is not None:
+            pose = perturbation.object_pose(pose)
+        self._friction = p.friction * (1.0 if perturbation is None else perturbation.friction_scale)
         self._build()
         self._set_hand(q)
         self._set_object(pose)
@@ -386,7 +413,7 @@ class GraspWorld:
             relative = Rotation.from_matrix(end[:3, :3] @ start[:3, :3].T)
             rotation[k] = float(np.degrees(relative.magnitude()))
             held[k] = bool(self._closest(_TOUCH_M))
-        return {
+        result = {
             "parts_penetration_m": penetration,
             "pushed_links": len(pushed),
             "touching": touching,
@@ -397,6 +424,8 @@ class GraspWorld:
             "contact": bool(tested.all() and held.all()),
             "bench": bool(tested.all() and _bench(displacement, rotation, p).all()),
         }
+        self._friction = p.friction
+        return result
 
     def _control(self, target: np.ndarray) -> None:
         """Put every hand joint under position control towards ``target (dof,)``."""
@@ -510,16 +539,24 @@ _URDF_CACHE: dict[tuple, Path] = {}
 
 
 def simulate_sequence(
-    world: GraspWorld,
+    worlds: Mapping[str, GraspWorld | MujocoGraspWorld] | GraspWorld | MujocoGraspWorld,
     q: np.ndarray,
     poses: np.ndarray,
     first_contact: int,
     sdf: SignedDistanceGrid,
 ) -> tuple[dict[str, np.ndarray], dict]:
-    """Evaluate the frames of one trajectory from its first contact on.
+    """Evaluate the frames of one trajectory from its first contact on, in every engine.
+
+    Each frame is tested in every engine of ``worlds`` (the same frames in all), nominally and
+    under ``simulate.perturbations.count`` perturbed copies (the object moved and turned a
+    little, the friction scaled; the same copies in every engine). A trial's criteria are the
+    engine's (``test_frame``); a frame's are robust: met in the nominal trial and in every
+    perturbed one (``*_single``: the nominal trial alone).
 
     Args:
-        world: A world whose object is this sequence's.
+        worlds: Per engine name (``pybullet``, ``mujoco``) a world whose object is this
+            sequence's; the first engine's result is the sequence's. A single world stands for
+            ``{world.engine: world}``.
         q: (T, dof) hand trajectory.
         poses: (T, 4, 4) object poses.
         first_contact: First frame with a finger in contact (-1: none, nothing is evaluated).
@@ -527,58 +564,105 @@ def simulate_sequence(
             starting penetration of the penetration rule is measured on it.
 
     Returns:
-        Per evaluated frame arrays (``frame``, ``penetration_m`` on the mesh,
-        ``parts_penetration_m`` on the convex parts, ``touching`` per finger of ``fingers``,
-        ``held``, ...) and the sequence's result.
+        Per evaluated frame arrays (``frame``, ``penetration_m`` on the mesh, and per engine
+        ``<engine>.<key>`` for :data:`~dexflow.io.artifacts.ENGINE_KEYS`) and the sequence's
+        result: the first engine's successes at the top level, every engine's under
+        ``engines``, and with two engines the frames on which they agree (``agree_hold``,
+        ``agree_drop``) or not (``disagree``) by the DexGraspBench criterion.
     """
-    p = world.params
+    if not isinstance(worlds, Mapping):
+        worlds = {worlds.engine: worlds}
+    engines = list(worlds)
+    p, hand = worlds[engines[0]].params, worlds[engines[0]].hand
     frames = [] if first_contact < 0 else list(range(first_contact, len(q), p.stride))
     if p.max_frames > 0:
         frames = frames[: p.max_frames]
     q, poses = np.asarray(q, dtype=float), np.asarray(poses, dtype=float)
     depth = np.zeros(len(q))
     if frames:
-        distances, _ = surface_distances(world.hand, q[frames], poses[frames], sdf)
+        distances, _ = surface_distances(hand, q[frames], poses[frames], sdf)
         depth[frames] = penetration_depth(distances)
-    rows = []
-    found = {"contact": None, "bench": None, "contact_raw": None, "bench_raw": None}
+    rows: list[dict] = []
+    found = {e: dict.fromkeys(("contact", "bench", "contact_raw", "bench_raw")) for e in engines}
     for t in frames:
-        row = world.test_frame(q[t], poses[t])
-        row["frame"] = t
-        row["penetration_m"] = float(depth[t])
-        rows.append(row)
+        row: dict = {"frame": t, "penetration_m": float(depth[t])}
+        trials = perturbations(p.perturbations, t)
         within = row["penetration_m"] <= p.penetration_tol_m
-        for key in ("contact", "bench"):
-            if row[key] and found[f"{key}_raw"] is None:
-                found[f"{key}_raw"] = t
-            if row[key] and within and found[key] is None:
-                found[key] = t
-        if p.early_stop and found["contact"] is not None and found["bench"] is not None:
+        for engine, world in worlds.items():
+            nominal = world.test_frame(q[t], poses[t])
+            robust = {k: bool(nominal[k]) for k in _CRITERIA}
+            for perturbation in trials:
+                trial = world.test_frame(q[t], poses[t], perturbation)
+                robust = {k: robust[k] and bool(trial[k]) for k in _CRITERIA}
+            row |= {f"{engine}.{k}": v for k, v in nominal.items() if k not in _CRITERIA}
+            hit = found[engine]
+            for key in _CRITERIA:
+                row[f"{engine}.{key}_single"] = bool(nominal[key])
+                row[f"{engine}.{key}"] = robust[key]
+                if robust[key] and hit[f"{key}_raw"] is None:
+                    hit[f"{key}_raw"] = t
+                if robust[key] and within and hit[key] is None:
+                    hit[key] = t
+        rows.append(row)
+        done = all(f["contact"] is not None and f["bench"] is not None for f in found.values())
+        if p.early_stop and done:
             break
-    width = {"touching": len(world.hand.spec.fingers)} | dict.fromkeys(
-        ("held", "displacement_m", "rotation_deg", "tested"), 6
-    )
-    arrays = {
-        k: np.array([r[k] for r in rows]) if rows else np.zeros((0, width[k]) if k in width else 0)
-        for k in SIMULATION_KEYS
-    }
-    arrays["fingers"] = np.array(list(world.hand.spec.fingers))
-    pen, parts = arrays["penetration_m"], arrays["parts_penetration_m"]
+    arrays = _rows_to_arrays(rows, engines, len(hand.spec.fingers))
+    pen = arrays["penetration_m"]
     result = {
         "frames": len(q),
         "first_contact": int(first_contact),
         "evaluated": len(rows),
-        "success_contact": found["contact"] is not None,
-        "success_bench": found["bench"] is not None,
-        "success_contact_raw": found["contact_raw"] is not None,
-        "success_bench_raw": found["bench_raw"] is not None,
-        "success_frame": -1 if found["contact"] is None else int(found["contact"]),
         "penetration_mean_mm": float(pen.mean() * 1000) if len(pen) else 0.0,
         "over_tolerance": float((pen > p.penetration_tol_m).mean()) if len(pen) else 0.0,
+        "engines": {e: _engine_result(arrays, e, found[e], p) for e in engines},
+    }
+    result |= result["engines"][engines[0]]
+    if len(engines) > 1:
+        a, b = (arrays[f"{e}.bench"] for e in engines[:2])
+        result["agree_hold"] = int(np.count_nonzero(a & b))
+        result["agree_drop"] = int(np.count_nonzero(~a & ~b))
+        result["disagree"] = int(np.count_nonzero(a != b))
+    return arrays, result
+
+
+_CRITERIA = ("contact", "bench")
+
+
+def _engine_result(arrays: dict, engine: str, hit: dict, p: SimulateParams) -> dict:
+    """One engine's result for a sequence (successes, flips, overlap with the convex parts)."""
+    parts = arrays[f"{engine}.parts_penetration_m"]
+    flipped = np.zeros(len(parts), dtype=bool)
+    for key in _CRITERIA:
+        flipped |= arrays[f"{engine}.{key}_single"] != arrays[f"{engine}.{key}"]
+    return {
+        "success_contact": hit["contact"] is not None,
+        "success_bench": hit["bench"] is not None,
+        "success_contact_raw": hit["contact_raw"] is not None,
+        "success_bench_raw": hit["bench_raw"] is not None,
+        "success_frame": -1 if hit["contact"] is None else int(hit["contact"]),
+        "flipped_frames": int(flipped.sum()),
         "parts_penetration_mean_mm": float(parts.mean() * 1000) if len(parts) else 0.0,
         "parts_over_tolerance": float((parts > p.penetration_tol_m).mean()) if len(parts) else 0.0,
     }
-    return arrays, result
+
+
+def _rows_to_arrays(rows: list[dict], engines: list[str], fingers: int) -> dict[str, np.ndarray]:
+    """Stack the per-frame rows into the arrays of a simulation result (empty ones shaped)."""
+    width = {"touching": fingers} | dict.fromkeys(
+        ("held", "displacement_m", "rotation_deg", "tested"), 6
+    )
+    flags = ("contact", "bench", "contact_single", "bench_single")
+    arrays = {}
+    for key in [*SIMULATION_KEYS, *(f"{e}.{k}" for e in engines for k in ENGINE_KEYS)]:
+        base = key.partition(".")[2] or key
+        if rows:
+            arrays[key] = np.array([r[key] for r in rows])
+        else:
+            arrays[key] = np.zeros((0, width[base]) if base in width else 0)
+        if base in flags:
+            arrays[key] = arrays[key].astype(bool)
+    return arrays
 
 
 def run_simulate(params: PipelineParams, layout: Layout, label: str) -> dict:
@@ -610,13 +694,15 @@ def run_simulate(params: PipelineParams, layout: Layout, label: str) -> dict:
         seq = load_sequence(aligned.sequence(path), data_root=aligned.root)
         q = read_trajectory(path, hand.joint_names, frames=seq.num_frames).q
         found = read_contact(contacts.sequence(path), list(hand.spec.fingers), seq.num_frames)
-        world = _world(hand, sp)
+        worlds = {engine: _world(engine, hand, sp) for engine in sp.engines}
         assets = ObjectAssets(aligned.object_of(seq.obj_mesh))
-        world.set_object(assets.paths.convex)
+        for world in worlds.values():
+            world.set_object(assets.paths.convex)
         start = time.perf_counter()
-        rows, result = simulate_sequence(world, q, seq.obj_pose, found.first_contact, assets.sdf())
+        rows, result = simulate_sequence(worlds, q, seq.obj_pose, found.first_contact, assets.sdf())
         result["seconds"] = time.perf_counter() - start
-        write_simulation(out.sequence(path), SimulationResult(rows, list(hand.spec.fingers)))
+        fingers = list(hand.spec.fingers)
+        write_simulation(out.sequence(path), SimulationResult(rows, fingers, list(sp.engines)))
         return result
 
     tally = stage.run(one, files, params.run)
@@ -624,34 +710,53 @@ def run_simulate(params: PipelineParams, layout: Layout, label: str) -> dict:
     seconds = sum(s.pop("seconds") for s in ok)
     evaluated = sum(s["evaluated"] for s in ok)
 
-    def percent(key):
-        return 100 * tally.mean(key)
-
     summary = {
         **tally.counts("simulate"),
         "method": label,
         "frames_evaluated": evaluated,
-        "ssr": percent("success_contact"),
-        "ssr_bench": percent("success_bench"),
-        "ssr_raw": percent("success_contact_raw"),
-        "ssr_bench_raw": percent("success_bench_raw"),
         "penetration_mean_mm": tally.mean("penetration_mean_mm"),
         "over_tolerance": tally.mean("over_tolerance", 0.0),
-        "parts_penetration_mean_mm": tally.mean("parts_penetration_mean_mm"),
-        "parts_over_tolerance": tally.mean("parts_over_tolerance", 0.0),
-        "sequences": dict(sorted(tally.sequences.items())),
     }
+    for i, engine in enumerate(sp.engines):
+        stats = _engine_summary([s["engines"][engine] for s in ok], evaluated)
+        if i == 0:
+            summary |= stats
+        summary |= {f"{k}_{engine}": v for k, v in stats.items()}
+    if len(sp.engines) > 1:
+        for key in ("agree_hold", "agree_drop", "disagree"):
+            summary[key] = int(sum(s[key] for s in ok))
+    summary["sequences"] = dict(sorted(tally.sequences.items()))
     stage.finish(summary)
     speed = evaluated / seconds if seconds else 0.0
     return {**summary, "timing": {"frames_per_second_one_core": speed}}
 
 
+def _engine_summary(entries: list[dict], evaluated: int) -> dict:
+    """One engine's aggregates over the sequences that succeeded (SSRs in %; ``flipped``: the
+    share of evaluated frames whose nominal trial and robust result differ)."""
+
+    def percent(key: str) -> float:
+        return float(100 * np.mean([e[key] for e in entries])) if entries else float("nan")
+
+    def mean(key: str) -> float:
+        return float(np.mean([e[key] for e in entries])) if entries else float("nan")
+
+    flipped = sum(e["flipped_frames"] for e in entries)
+    return {
+        "ssr": percent("success_contact"),
+        "ssr_bench": percent("success_bench"),
+        "ssr_raw": percent("success_contact_raw"),
+        "ssr_bench_raw": percent("success_bench_raw"),
+        "parts_penetration_mean_mm": mean("parts_penetration_mean_mm"),
+        "parts_over_tolerance": mean("parts_over_tolerance"),
+        "flipped": flipped / evaluated if evaluated else 0.0,
+    }
+
+
 STAGE = StageSpec(
     name="simulate",
     run=run_simulate,
-    metric_keys=("num_sequences", "num_ok", "num_failed", "frames_evaluated", "ssr", "ssr_bench",
-                 "ssr_raw", "ssr_bench_raw", "penetration_mean_mm", "over_tolerance",
-                 "parts_penetration_mean_mm", "parts_over_tolerance"),
+    metric_keys=None,  # every aggregate: the first engine's, each engine's (``<key>_<engine>``)
     describe=lambda s: (
         f"{s['num_ok']}/{s['num_sequences']} sequences; SSR {s['ssr']:.1f} % (contact), "
         f"{s['ssr_bench']:.1f} % (DexGraspBench); without the penetration tolerance "
@@ -662,13 +767,17 @@ STAGE = StageSpec(
 )  # fmt: skip
 
 
-_WORLDS: dict[int, GraspWorld] = {}
+_WORLDS: dict[tuple[str, int], GraspWorld | MujocoGraspWorld] = {}
 
 
-def _world(hand: RobotHand, params: SimulateParams) -> GraspWorld:
-    """One world per process and hand (loading and checking the URDF once)."""
-    key = id(hand)
+def _world(engine: str, hand: RobotHand, params: SimulateParams) -> GraspWorld | MujocoGraspWorld:
+    """One world per process, engine and hand (loading and checking the model once)."""
+    key = (engine, id(hand))
     world = _WORLDS.get(key)
     if world is None or world.params != params:
-        world = _WORLDS[key] = GraspWorld(hand, hand_urdf(hand, params), params)
+        if engine == "mujoco":
+            world = MujocoGraspWorld(hand, params)
+        else:
+            world = GraspWorld(hand, hand_urdf(hand, params), params)
+        _WORLDS[key] = world
     return world

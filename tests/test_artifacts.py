@@ -7,6 +7,7 @@ import pytest
 
 from dexflow.errors import ArtifactError
 from dexflow.io.artifacts import (
+    ENGINE_KEYS,
     SIMULATION_KEYS,
     ContactResult,
     MetricFrames,
@@ -55,12 +56,16 @@ def _contact(frames: int = 6, first: int | None = 2) -> ContactResult:
     )
 
 
+ENGINES = ["mujoco", "pybullet"]
+ROW_KEYS = [*SIMULATION_KEYS, *(f"{e}.{k}" for e in ENGINES for k in ENGINE_KEYS)]
+
+
 def _simulation_rows(n: int = 4) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(0)
     shapes = {"touching": (n, len(FINGERS))} | {
         k: (n, 6) for k in ("held", "displacement_m", "rotation_deg", "tested")
     }
-    return {k: rng.random(shapes.get(k, (n,))) for k in SIMULATION_KEYS}
+    return {k: rng.random(shapes.get(k.partition(".")[2] or k, (n,))) for k in ROW_KEYS}
 
 
 # ----------------------------------------------------------------------------- round trips
@@ -105,11 +110,11 @@ def test_contact_round_trip_keeps_every_field(tmp_path):
 def test_simulation_round_trip_keeps_rows_and_fingers(tmp_path):
     path = tmp_path / "sim.npz"
     rows = _simulation_rows()
-    write_simulation(path, SimulationResult(rows, list(FINGERS)))
+    write_simulation(path, SimulationResult(rows, list(FINGERS), ENGINES))
     back = read_simulation(path)
-    assert back.fingers == FINGERS
-    assert set(back.rows) == set(SIMULATION_KEYS)
-    for key in SIMULATION_KEYS:
+    assert back.fingers == FINGERS and back.engines == ENGINES
+    assert set(back.rows) == set(ROW_KEYS)
+    for key in ROW_KEYS:
         np.testing.assert_array_equal(back.rows[key], rows[key])
 
 
@@ -271,21 +276,26 @@ def test_first_contact_counts_any_finger(tmp_path):
 # ----------------------------------------------------------------------------- simulation
 
 
-@pytest.mark.parametrize("key", SIMULATION_KEYS)
+@pytest.mark.parametrize("key", [*SIMULATION_KEYS, "pybullet.held", "mujoco.bench_single"])
 def test_write_simulation_refuses_rows_lacking_a_key(tmp_path, key):
     rows = _simulation_rows()
     del rows[key]
     path = tmp_path / "sim.npz"
     with pytest.raises(ArtifactError, match=key):
-        write_simulation(path, SimulationResult(rows, list(FINGERS)))
+        write_simulation(path, SimulationResult(rows, list(FINGERS), ENGINES))
     assert not path.exists()
+
+
+def test_write_simulation_refuses_no_engine(tmp_path):
+    with pytest.raises(ArtifactError, match="engine"):
+        write_simulation(tmp_path / "sim.npz", SimulationResult(_simulation_rows(), FINGERS, []))
 
 
 def test_read_simulation_refuses_a_file_lacking_a_key(tmp_path):
     rows = _simulation_rows()
-    del rows["held"]
+    del rows["mujoco.held"]
     path = tmp_path / "sim.npz"
-    np.savez(path, fingers=np.array(FINGERS), **rows)
+    np.savez(path, fingers=np.array(FINGERS), engines=np.array(ENGINES), **rows)
     with pytest.raises(ArtifactError, match="held"):
         read_simulation(path)
 

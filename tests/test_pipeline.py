@@ -70,8 +70,15 @@ def test_repro_then_noop_then_only_the_changed_stage(project):
         done = json.loads((project / "data" / stage / "summary.json").read_text())
         assert done["num_ok"] == done["num_sequences"] == 2, stage
 
+    _assert_one_number_per_name(project / "reports" / "metrics")
+
     again = _run(["dvc", "repro"], project)
     assert "Running stage" not in again
+
+    # An edit to another hand's yaml is no dep of this (shadow) pipeline: nothing reruns.
+    allegro = project / "conf" / "hand" / "allegro.yaml"
+    allegro.write_text(allegro.read_text() + "\n# edited\n")
+    assert "Running stage" not in _run(["dvc", "repro"], project)
 
     _run(
         [sys.executable, "-m", "dexflow.cli", "params", "scale_align.sdf_spacing_m=0.003"], project
@@ -87,6 +94,34 @@ def test_repro_then_noop_then_only_the_changed_stage(project):
     )
     custom = _run(["dvc", "repro"], project)
     assert "Running stage 'demo" not in custom and "Running stage 'report'" in custom
+
+
+def _assert_one_number_per_name(metrics: Path) -> None:
+    """Where two metric files report a number under one name, it is the same number: each
+    metric has one definition (metrics.json holds ``<method>.<name>`` and ``contact.<name>``)."""
+    m = json.loads((metrics / "metrics.json").read_text())
+    pairs = {
+        "retarget_dexflow.json": {"keypoint_error_mm": "retarget.keypoint_error_mm",
+                                  "rms_acc": "retarget.rms_acc"},
+        "retarget_position.json": {"keypoint_error_mm": "baseline.keypoint_error_mm",
+                                   "rms_acc": "baseline.rms_acc"},
+        "contact.json": {"flicker_raw": "contact.flicker_raw",
+                         "flicker_final": "contact.flicker_final"},
+        "refine.json": {"pd_before_mm": "retarget.pd_mm", "pd_after_mm": "refine.pd_mm",
+                        "cd_before_mm": "retarget.cd_mm", "cd_after_mm": "refine.cd_mm",
+                        "rms_acc_before": "retarget.rms_acc", "rms_acc_after": "refine.rms_acc"},
+    }  # fmt: skip
+    for name, keys in pairs.items():
+        stage = json.loads((metrics / name).read_text())
+        for key, aggregate in keys.items():
+            assert stage[key] == pytest.approx(m[aggregate], rel=1e-9, nan_ok=True), (name, key)
+    contact = json.loads((metrics / "contact.json").read_text())
+    if "contact.precision" in m:
+        assert contact["final_vs_truth"]["precision"] == pytest.approx(m["contact.precision"])
+        assert contact["final_vs_truth"]["recall"] == pytest.approx(m["contact.recall"])
+    for name in ("refine.json", "retarget_dexflow.json", "metrics.json"):
+        assert "velocity_kl" not in json.loads((metrics / name).read_text())  # only per method
+    assert "spd_before_mm" not in json.loads((metrics / "refine.json").read_text())
 
 
 def test_dvc_exp_run_composes_hydra_overrides(project):

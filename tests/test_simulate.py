@@ -136,15 +136,16 @@ def test_penetrating_start_does_not_count_and_sequence_logic(scene, box_sdf):
     world_1.set_object(folder / "box.obj")
     arrays, result = simulate_sequence(world_1, q, poses, first_contact=2, sdf=box_sdf)
     assert arrays["frame"].tolist() == [2, 3]  # early stop after the first counted success
-    assert arrays["fingers"].tolist() == ["thumb", "index", "middle"]
-    assert arrays["touching"].shape == (2, 3) and arrays["touching"][1].all()
-    assert arrays["penetration_m"][0] > p.penetration_tol_m and arrays["contact"][0]
+    assert arrays["pybullet.touching"].shape == (2, 3) and arrays["pybullet.touching"][1].all()
+    assert arrays["penetration_m"][0] > p.penetration_tol_m and arrays["pybullet.contact"][0]
     assert arrays["penetration_m"][0] == pytest.approx(0.004, abs=5e-4)  # on the mesh
-    assert arrays["parts_penetration_m"][0] == pytest.approx(0.004, abs=5e-4)  # parts = mesh
+    parts = arrays["pybullet.parts_penetration_m"][0]
+    assert parts == pytest.approx(0.004, abs=5e-4)  # parts = mesh
     assert result["success_contact_raw"] and result["success_contact"]
     assert result["success_frame"] == 3 and result["evaluated"] == 2
+    assert result["engines"]["pybullet"]["success_frame"] == 3
     empty, none = simulate_sequence(world_1, q, poses, first_contact=-1, sdf=box_sdf)
-    assert empty["touching"].shape == (0, 3) and empty["held"].shape == (0, 6)
+    assert empty["pybullet.touching"].shape == (0, 3) and empty["pybullet.held"].shape == (0, 6)
     assert none["evaluated"] == 0 and not none["success_contact"]
 
 
@@ -233,7 +234,53 @@ def test_penetration_rule_uses_the_mesh_not_the_bulging_convex_parts(scene, box_
     bulging = GraspWorld(hand, hand_urdf(hand), SimulateParams())
     bulging.set_object(tmp_path / "bulging.obj")
     arrays, result = simulate_sequence(bulging, q[None], pose[None], 0, box_sdf)
-    assert arrays["parts_penetration_m"][0] > 0.0025
+    assert arrays["pybullet.parts_penetration_m"][0] > 0.0025
     assert arrays["penetration_m"][0] < 1e-3
     assert result["over_tolerance"] == 0.0 and result["parts_over_tolerance"] == 1.0
     assert result["success_contact"] == result["success_contact_raw"]
+
+
+def test_both_engines_test_the_same_frames_and_their_agreement_is_counted(scene, box_sdf):
+    """pybullet and MuJoCo on one trajectory: the same frames, one row set per engine, the first
+    engine's success at the top level, and per-frame agreement by DexGraspBench's criterion."""
+    from dexflow.mujoco_world import MujocoGraspWorld
+
+    hand, world, pose, folder = scene
+    params = dataclasses.replace(world.params, stride=1, early_stop=False)
+    pybullet = GraspWorld(hand, hand_urdf(hand), params)
+    mujoco = MujocoGraspWorld(hand, params)
+    for w in (pybullet, mujoco):
+        w.set_object(folder / "box.obj")
+    closed, opened = _closed(hand, world, pose), _opened(hand)
+    q = np.stack([closed, opened, closed])
+    poses = np.repeat(pose[None], 3, axis=0)
+    arrays, result = simulate_sequence(
+        {"mujoco": mujoco, "pybullet": pybullet}, q, poses, 0, box_sdf
+    )
+    assert arrays["frame"].tolist() == [0, 1, 2]
+    for engine in ("mujoco", "pybullet"):
+        assert arrays[f"{engine}.bench"].tolist() == [True, False, True], engine
+        assert result["engines"][engine]["success_bench"]
+    assert result["success_bench"] == result["engines"]["mujoco"]["success_bench"]  # the first
+    assert (result["agree_hold"], result["agree_drop"], result["disagree"]) == (2, 1, 0)
+
+
+def test_perturbed_trials_make_success_robust_and_zero_trials_are_the_single_trial(scene, box_sdf):
+    """With perturbations off, robust = single trial; with a perturbation that moves the box out
+    of the hand, the frame that held nominally no longer counts, and it is counted as flipped."""
+    hand, world, pose, folder = scene
+    closed = _closed(hand, world, pose)
+    base = dataclasses.replace(world.params, stride=1, early_stop=False)
+    single = GraspWorld(hand, hand_urdf(hand), base)
+    single.set_object(folder / "box.obj")
+    arrays, result = simulate_sequence(single, closed[None], pose[None], 0, box_sdf)
+    assert arrays["pybullet.bench"].tolist() == arrays["pybullet.bench_single"].tolist() == [True]
+    assert result["flipped_frames"] == 0 and result["success_bench"]
+
+    far = dataclasses.replace(base.perturbations, count=2, position_m=0.05, rotation_deg=0.0)
+    shaken = GraspWorld(hand, hand_urdf(hand), dataclasses.replace(base, perturbations=far))
+    shaken.set_object(folder / "box.obj")
+    arrays, result = simulate_sequence(shaken, closed[None], pose[None], 0, box_sdf)
+    assert arrays["pybullet.bench_single"].tolist() == [True]  # the nominal trial still holds
+    assert arrays["pybullet.bench"].tolist() == [False]  # but not robustly
+    assert result["flipped_frames"] == 1 and not result["success_bench"]

@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from dexflow.objects.sdf import SignedDistanceGrid
 
 __all__ = [
+    "ENGINE_KEYS",
     "SIMULATION_KEYS",
     "ContactResult",
     "MetricFrames",
@@ -271,9 +272,12 @@ class ObjectAssets:
 
 # ----------------------------------------------------------------------------- simulation
 
-# The per-tested-frame arrays of a simulation result (see SimulationResult).
-SIMULATION_KEYS = ("frame", "penetration_m", "parts_penetration_m", "pushed_links", "touching", "held",
-             "displacement_m", "rotation_deg", "tested", "contact", "bench")  # fmt: skip
+# The per-tested-frame arrays of a simulation result shared by its engines (see SimulationResult)
+SIMULATION_KEYS = ("frame", "penetration_m")
+# ... and those of each engine, stored as ``<engine>.<key>``.
+ENGINE_KEYS = ("parts_penetration_m", "pushed_links", "touching", "held", "displacement_m",
+               "rotation_deg", "tested", "contact", "bench", "contact_single",
+               "bench_single")  # fmt: skip
 
 
 @dataclass
@@ -281,29 +285,50 @@ class SimulationResult:
     """Stage simulate's rows for one sequence, one per tested frame (N rows).
 
     Attributes:
-        rows: ``frame (N,)``, ``penetration_m (N,)`` (mesh depth, the rule's),
-            ``parts_penetration_m (N,)`` (against the convex parts), ``pushed_links (N,)``,
-            ``touching (N, F)``, ``held``/``displacement_m``/``rotation_deg``/``tested``
-            ``(N, 6)`` per pull direction, ``contact (N,)`` and ``bench (N,)`` successes.
+        rows: ``frame (N,)``, ``penetration_m (N,)`` (mesh depth, the penetration rule's), and
+            per engine ``<engine>.<key>``: ``parts_penetration_m (N,)`` (against the convex
+            parts), ``pushed_links (N,)``, ``touching (N, F)``,
+            ``held``/``displacement_m``/``rotation_deg``/``tested`` ``(N, 6)`` per push
+            direction of the nominal trial, ``contact (N,)`` and ``bench (N,)`` (robust: the
+            nominal and every perturbed trial) and ``contact_single``/``bench_single`` (the
+            nominal trial alone).
         fingers: The F finger names.
+        engines: The engines that tested the frames, the first one the stage's.
     """
 
     rows: dict[str, np.ndarray]
     fingers: list[str]
+    engines: list[str]
+
+
+def _simulation_keys(engines: Names[str]) -> list[str]:
+    return [*SIMULATION_KEYS, *(f"{e}.{k}" for e in engines for k in ENGINE_KEYS)]
 
 
 def write_simulation(path: str | Path, result: SimulationResult) -> None:
-    missing = [k for k in SIMULATION_KEYS if k not in result.rows]
-    if missing:
-        raise ArtifactError(f"{path}: simulation rows lack {missing}")
+    keys = _simulation_keys(result.engines)
+    missing = [k for k in keys if k not in result.rows]
+    if missing or not result.engines:
+        raise ArtifactError(f"{path}: simulation rows lack {missing or 'an engine'}")
     save_npz(
-        path, {**{k: result.rows[k] for k in SIMULATION_KEYS}, "fingers": np.array(result.fingers)}
+        path,
+        {
+            **{k: result.rows[k] for k in keys},
+            "fingers": np.array(result.fingers),
+            "engines": np.array(result.engines),
+        },
     )
 
 
 def read_simulation(path: str | Path) -> SimulationResult:
-    arrays = _load(Path(path), (*SIMULATION_KEYS, "fingers"))
-    return SimulationResult({k: arrays[k] for k in SIMULATION_KEYS}, _names(arrays["fingers"]))
+    path = Path(path)
+    arrays = _load(path, (*SIMULATION_KEYS, "fingers", "engines"))
+    engines = _names(arrays["engines"])
+    keys = _simulation_keys(engines)
+    missing = [k for k in keys if k not in arrays]
+    if missing:
+        raise ArtifactError(f"{path}: missing {missing}; found {sorted(arrays)}")
+    return SimulationResult({k: arrays[k] for k in keys}, _names(arrays["fingers"]), engines)
 
 
 # -------------------------------------------------------------------------------- metrics

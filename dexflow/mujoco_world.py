@@ -1,0 +1,631 @@
+"""The per-frame grasp test in MuJoCo, with DexGraspBench's published protocol.
+
+:class:`MujocoGraspWorld` has the interface and the result of the pybullet
+:class:`dexflow.simulate.GraspWorld` (``set_object``, ``test_frame``, ``close``), so stage
+simulate can run either engine on the same frames; :func:`perturbations` draws the perturbed
+copies of a frame that both engines test for robust success.
+
+The scene (one ``MjSpec`` per object, compiled once per :meth:`MujocoGraspWorld.set_object`):
+
+- Options: ``timestep_s``, ``impratio``, the implicitfast integrator, elliptic friction cones,
+  two noslip iterations, no gravity, MuJoCo's native convex collision (on by default in this
+  MuJoCo; the world makes sure it is not disabled).
+- The hand, read by ``mujoco.MjSpec.from_file`` from its URDF or MJCF (no export). Its root body
+  (``hand.model.root``, with its own offset from its parent) is attached under a **mocap body**
+  held at the frame's base pose (``dexflow.hands.robot.base_transform``), so the hand's frames
+  are the kinematic model's; the construction checks it (every body and site named in
+  ``hand.model.frames`` within 0.1 mm of ``hand.link_transforms`` at a random configuration
+  with a moved base, else :class:`~dexflow.errors.HandConfigError`). Static bodies are not fused
+  (every link stays a body). The model's own actuators, tendons, equalities, sensors, contact
+  pairs and keyframes are dropped (a configuration from dexflow satisfies the couplings
+  already); every hand joint gets a position actuator (gain ``kp``, no velocity gain, control
+  range = the joint's limits, force unlimited) and ``joint_damping`` on top of its own. A URDF
+  link without ``<inertial>`` weighs ``massless_link_mass_kg`` with a diagonal inertia of
+  ``massless_link_inertia_kgm2`` at its origin (as pybullet's copy of the URDF gives it); so
+  does an MJCF body without inertial data and without geoms (MuJoCo would make it massless).
+  Hand-hand collisions are off (as in pybullet); every hand collision geom has condim 4,
+  friction ``friction`` (sliding, torsional), solimp (0.5, 0.99, 0.0001) and solref (0.005, 1).
+- The object: one free body whose geoms are the convex parts of stage scale_align (object
+  frame = body frame), condim 4 and the same friction, of total mass ``object_mass_kg`` at
+  uniform density (the parts' total volume from their convex hulls). All margins are zero in
+  the simulation.
+
+Protocol for one frame ``(q, T)`` (numbers from ``params.mujoco`` unless said otherwise):
+
+1. Hand at ``q``, object at ``T`` (perturbed: :meth:`Perturbation.object_pose`), at rest. With a
+   contact margin (and gap) of ``contact_margin_m`` on the object's geoms (DexGraspBench's way
+   of measuring contacts), MuJoCo's contacts give the deepest overlap of a hand geom with a part
+   (``parts_penetration_m``, from the contacts' ``dist``), the hand bodies within the margin
+   (``pushed_links``; a finger is ``touching`` if one of its ``links`` is among them) and, per
+   such body, the point of its closest contact and the direction into the object there.
+2. Targets along the grasp, from one damped least-squares step on the stacked translational
+   Jacobians (``mj_jac``) of those points over the hand's free joints (tied joints follow their
+   leaders; limits hold): **squeeze** moves every point ``push_m`` (plus its gap) into the
+   object, **pregrasp** backs it off by ``push_m``; **grasp** is ``q``. Without contacts the
+   three are ``q``.
+3. For each direction of :data:`dexflow.simulate.DIRECTIONS` (+x, -x, +y, -y, +z, -z) in turn,
+   from a reset world: the hand at the pregrasp, the object at its pose; the actuator targets
+   move linearly pregrasp -> grasp over ``close_steps`` control steps of ``steps_per_control``
+   physics steps, then grasp -> squeeze likewise; then a force ``force_scale * object_mass_kg``
+   newtons along the direction acts on the object (``xfrc_applied``, no torque) and, every
+   ``steps_per_check`` steps (``hold_checks`` times), the object's displacement (of its frame's
+   origin) and rotation angle are measured **from its initial pose, before the fingers closed**
+   (as DexGraspBench does). The direction fails once the displacement reaches
+   ``max_displacement_m`` or the rotation ``max_rotation_deg``.
+4. ``held``: the object touches the hand (a contact closer than 1 mm) at the end of the test.
+
+As in DexGraspBench, a frame's test **stops at the first failing direction**: the remaining
+ones are untested (``tested`` False, NaN displacement and rotation, ``held`` False). Criteria:
+``bench`` (DexGraspBench): all six tested and within both thresholds; ``contact`` (the paper):
+all six tested and held in each. So ``contact`` is computed over the tested directions only when
+all six were tested, that is when ``bench`` passed: here ``contact`` implies ``bench`` (unlike
+pybullet's test, which runs on while either criterion may still pass).
+
+Deterministic: every test resets the data (``mj_resetData``) and sets everything it reads, so a
+frame's result depends neither on the frames tested before it nor on the world instance.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import torch
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from dexflow.errors import HandConfigError
+from dexflow.hands.model import _urdf_mesh_path
+from dexflow.hands.robot import RobotHand, base_transform
+from dexflow.params import PerturbationParams, SimulateParams
+
+__all__ = ["MujocoGraspWorld", "Perturbation", "perturbations"]
+
+_DIRECTIONS = np.array(
+    [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=float
+)  # dexflow.simulate.DIRECTIONS (not imported: simulate imports this module)
+_TOUCH_M = 1e-3  # "in contact" at the end of a test: closer than this
+_DLS_DAMPING = 1e-2  # damping (m/rad) of the targets' least-squares step
+_FK_CHECK_TOL_M = 1e-4  # MuJoCo's frames must match the kinematic model's
+_GAP_RANGE_M = 0.01  # MujocoGraspWorld.gap: +inf beyond this (MuJoCo's distances err at 10 cm)
+_HAND_SOLIMP = (0.5, 0.99, 0.0001)
+_HAND_SOLREF = (0.005, 1.0)
+_ROLLING_FRICTION = 1e-4  # MuJoCo's default; unused at condim 4
+_MOUNT = "dexflow_mount"
+_OBJECT = "dexflow_object"
+
+logger = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------- perturbations
+
+
+@dataclass(frozen=True, eq=False)
+class Perturbation:
+    """A perturbed copy of a frame's test.
+
+    Attributes:
+        offset_m: (3,) translation of the object, in the world frame.
+        rotvec_rad: (3,) rotation vector of the object, in its own frame about its origin.
+        friction_scale: Factor on the sliding friction of every geom.
+
+    The perturbed pose is ``T(offset_m) @ pose @ R(rotvec_rad)`` (:meth:`object_pose`); the
+    whole test (contacts, targets, simulation) sees the object there, with the frame's ``q``
+    unchanged. Two perturbations are equal when all their fields are.
+    """
+
+    offset_m: np.ndarray
+    rotvec_rad: np.ndarray
+    friction_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("offset_m", "rotvec_rad"):
+            value = np.array(getattr(self, name), dtype=float).reshape(3)
+            value.flags.writeable = False
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "friction_scale", float(self.friction_scale))
+
+    @classmethod
+    def none(cls) -> Perturbation:
+        """The identity: no offset, no rotation, friction unchanged."""
+        return cls(np.zeros(3), np.zeros(3), 1.0)
+
+    def object_pose(self, pose: np.ndarray) -> np.ndarray:
+        """The perturbed object pose (4, 4) of ``pose`` (4, 4), object -> world."""
+        rotation = np.eye(4)
+        rotation[:3, :3] = Rotation.from_rotvec(np.array(self.rotvec_rad)).as_matrix()
+        out = np.asarray(pose, dtype=float) @ rotation
+        out[:3, 3] += self.offset_m
+        return out
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Perturbation):
+            return NotImplemented
+        return (
+            np.array_equal(self.offset_m, other.offset_m)
+            and np.array_equal(self.rotvec_rad, other.rotvec_rad)
+            and self.friction_scale == other.friction_scale
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+def perturbations(params: PerturbationParams, frame_seed: int) -> list[Perturbation]:
+    """The ``params.count`` perturbed copies of a frame's test (deterministic per frame).
+
+    Drawn from ``np.random.default_rng([params.seed, frame_seed])``: offsets uniform in the
+    ball of radius ``position_m``, rotations about a uniformly random axis by an angle uniform
+    in ``[0, rotation_deg]``, friction factors uniform in ``[1 - friction_rel, 1 + friction_rel]``.
+
+    Args:
+        params: The perturbations' settings.
+        frame_seed: Non-negative integer naming the frame (e.g. its index).
+
+    Returns:
+        ``count`` perturbations (an empty list for ``count == 0``).
+    """
+    n = int(params.count)
+    if n <= 0:
+        return []
+    rng = np.random.default_rng([int(params.seed), int(frame_seed)])
+    directions = _unit(rng.normal(size=(n, 3)))  # (n, 3)
+    radii = params.position_m * rng.random(n) ** (1.0 / 3.0)  # uniform in the ball
+    axes = _unit(rng.normal(size=(n, 3)))
+    angles = np.radians(params.rotation_deg) * rng.random(n)
+    scales = rng.uniform(1.0 - params.friction_rel, 1.0 + params.friction_rel, n)
+    offsets, rotvecs = directions * radii[:, None], axes * angles[:, None]
+    return [Perturbation(o, r, float(s)) for o, r, s in zip(offsets, rotvecs, scales, strict=True)]
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    """Rows of ``v (n, 3)`` scaled to unit length."""
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+# -------------------------------------------------------------------------------- the scene
+
+
+def _quat(rotation: np.ndarray) -> np.ndarray:
+    """MuJoCo quaternion (w, x, y, z) of a (3, 3) rotation matrix."""
+    out = np.empty(4)
+    mujoco.mju_mat2Quat(out, np.ascontiguousarray(rotation, dtype=float).reshape(9))
+    return out
+
+
+def _hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
+    """The scene without an object: options, mocap mount, the hand and its actuators."""
+    p, mp = params, params.mujoco
+    path = Path(hand.model.path)
+    child = mujoco.MjSpec.from_file(str(path))
+    folder = Path(child.modelfiledir or path.parent)
+    for mesh in child.meshes:  # absolute paths: the scene has no model directory of its own
+        if mesh.file and not Path(mesh.file).is_absolute():
+            if hand.model.format == "urdf":
+                mesh.file = str(_urdf_mesh_path(mesh.file, path.parent))
+            else:
+                mesh.file = str(folder / child.meshdir / mesh.file)
+    for texture in child.textures:
+        if texture.file and not Path(texture.file).is_absolute():
+            texture.file = str(folder / child.texturedir / texture.file)
+    child.meshdir = child.texturedir = ""
+    root = child.body(hand.model.root)
+    if root is None:
+        raise HandConfigError(f"hand '{hand.spec.name}': no body '{hand.model.root}' in {path}")
+    no_inertial = _massless(child, root, hand.model.format)
+    for body in no_inertial:
+        body.explicitinertial = True
+        body.mass = p.massless_link_mass_kg
+        body.inertia = [p.massless_link_inertia_kgm2] * 3
+        body.ipos, body.iquat = [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
+    if no_inertial:
+        logger.info(
+            "hand '%s': bodies without inertial data given %g kg: %s",
+            hand.spec.name, p.massless_link_mass_kg, ", ".join(b.name for b in no_inertial),
+        )  # fmt: skip
+
+    scene = mujoco.MjSpec()
+    scene.modelname = f"dexflow_{hand.spec.name}"
+    # The child's sizes and options become the scene's defaults: no attach conflicts.
+    for name in [a for a in dir(scene.option) if not a.startswith("_")]:
+        try:
+            setattr(child.option, name, getattr(scene.option, name))
+        except (AttributeError, TypeError):
+            pass
+    for name in ["njmax", "nconmax", "nstack", "nuserdata", "memory"] + [
+        a for a in dir(scene) if a.startswith("nuser_")
+    ]:
+        setattr(child, name, getattr(scene, name))
+    mount = scene.worldbody.add_body(name=_MOUNT, mocap=True)
+    mount.add_frame().attach_body(root, "", "")
+    for kind in ("actuators", "sensors", "tendons", "equalities", "pairs", "keys"):
+        for element in list(getattr(scene, kind)):
+            scene.delete(element)
+
+    opt = scene.option
+    opt.timestep = mp.timestep_s
+    opt.impratio = mp.impratio
+    opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    opt.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+    opt.noslip_iterations = 2
+    opt.gravity = [0.0, 0.0, 0.0]
+    opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
+    scene.compiler.fusestatic = False
+    scene.compiler.degree = False
+
+    sliding, torsional = mp.friction
+    for geom in scene.geoms:
+        geom.margin = geom.gap = 0.0
+        if geom.contype == 0 and geom.conaffinity == 0:
+            continue  # visual only
+        geom.contype, geom.conaffinity = 1, 0  # touches the object, not the hand
+        geom.condim = 4
+        geom.friction = [sliding, torsional, _ROLLING_FRICTION]
+        geom.solimp = [*_HAND_SOLIMP, *geom.solimp[3:]]
+        geom.solref = list(_HAND_SOLREF)
+    joints = {j.name: j for j in scene.joints}
+    missing = [n for n in hand.hand_joint_names if n not in joints]
+    if missing:
+        raise HandConfigError(
+            f"hand '{hand.spec.name}': joints {missing} of the kinematic model are not joints "
+            f"of {path} in MuJoCo; found {sorted(joints)}"
+        )
+    lower, upper = hand.lower.cpu().numpy()[6:], hand.upper.cpu().numpy()[6:]
+    for name, lo, hi in zip(hand.hand_joint_names, lower, upper, strict=True):
+        joint = joints[name]
+        damping = np.array(joint.damping, dtype=float)
+        damping[0] += mp.joint_damping
+        joint.damping = damping
+        actuator = scene.add_actuator(name=f"dexflow_{name}", target=name)
+        actuator.trntype = mujoco.mjtTrn.mjTRN_JOINT
+        actuator.set_to_position(kp=mp.kp, kv=0.0)
+        actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        actuator.ctrlrange = [float(lo), float(hi)]
+        actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_FALSE
+    return scene
+
+
+def _massless(spec: mujoco.MjSpec, root: mujoco.MjsBody, fmt: str) -> list[mujoco.MjsBody]:
+    """Bodies of the hand (``root`` and below) without inertial data that need the default: in
+    a URDF, links without ``<inertial>``; in an MJCF, bodies without it and without geoms."""
+    bodies = [root, *root.find_all(mujoco.mjtObj.mjOBJ_BODY)]
+    if fmt == "urdf":
+        return [b for b in bodies if not b.explicitinertial]
+    return [b for b in bodies if not b.explicitinertial and not b.geoms]
+
+
+def _add_object(scene: mujoco.MjSpec, parts: list[np.ndarray], params: SimulateParams) -> None:
+    """A free body with one convex mesh geom per part, ``object_mass_kg`` at uniform density."""
+    mp = params.mujoco
+    volume = sum(trimesh.convex.convex_hull(v).volume for v in parts)
+    density = mp.object_mass_kg / volume
+    body = scene.worldbody.add_body(name=_OBJECT)
+    body.add_freejoint(name=f"{_OBJECT}_free")
+    sliding, torsional = mp.friction
+    for i, vertices in enumerate(parts):
+        mesh = scene.add_mesh(name=f"{_OBJECT}_part{i}")
+        mesh.uservert = np.asarray(vertices, dtype=float).reshape(-1)
+        mesh.inertia = mujoco.mjtMeshInertia.mjMESH_INERTIA_CONVEX
+        body.add_geom(
+            name=f"{_OBJECT}_part{i}",
+            type=mujoco.mjtGeom.mjGEOM_MESH,
+            meshname=mesh.name,
+            density=density,
+            contype=1,
+            conaffinity=1,
+            condim=4,
+            friction=[sliding, torsional, _ROLLING_FRICTION],
+            margin=0.0,
+            gap=0.0,
+        )
+
+
+# -------------------------------------------------------------------------------- the world
+
+
+class MujocoGraspWorld:
+    """One MuJoCo scene holding a hand and, per sequence, an object (see the module docs).
+
+    Args:
+        hand: The kinematic model (joint names, limits, couplings, forward kinematics).
+        params: The protocol's parameters (``params.mujoco`` and the shared ``push_m``,
+            ``contact_margin_m``, ``max_displacement_m``, ``max_rotation_deg``,
+            ``massless_link_mass_kg``, ``massless_link_inertia_kgm2``).
+
+    Raises:
+        HandConfigError: The model's joints or frames in MuJoCo disagree with ``hand``.
+    """
+
+    def __init__(self, hand: RobotHand, params: SimulateParams) -> None:
+        self.hand, self.params = hand, params
+        self._spec = _hand_spec(hand, params)
+        self._parts: list[np.ndarray] | None = None
+        self._object_key: tuple | None = None
+        self._compile(self._spec)
+        self._check_kinematics()
+
+    # ---------------------------------------------------------------------------- building
+
+    def _compile(self, spec: mujoco.MjSpec) -> None:
+        try:
+            self.model = spec.compile()
+        except ValueError as exc:
+            raise HandConfigError(
+                f"hand '{self.hand.spec.name}': MuJoCo cannot compile the scene: {exc}"
+            ) from exc
+        m = self.model
+        self.data = mujoco.MjData(m)
+        joints = [m.joint(n) for n in self.hand.hand_joint_names]
+        self._qpos = np.array([int(j.qposadr[0]) for j in joints])
+        self._dofs = np.array([int(j.dofadr[0]) for j in joints])
+        mount = m.body(_MOUNT).id
+        self._mocap = int(m.body_mocapid[mount])
+        parents = m.body_parentid
+        hand_body = np.zeros(m.nbody, bool)
+        hand_body[mount] = True
+        for b in range(mount + 1, m.nbody):  # bodies come after their parents
+            hand_body[b] = hand_body[parents[b]]
+        self._hand_body = hand_body
+        self._object = m.body(_OBJECT).id if self._parts is not None else -1
+        object_geoms = m.geom_bodyid == self._object
+        self._object_geoms = np.flatnonzero(object_geoms)
+        self._friction = m.geom_friction[:, 0].copy()
+        if self._object >= 0:
+            adr = int(m.jnt_qposadr[m.body_jntadr[self._object]])
+            self._object_qpos = slice(adr, adr + 7)
+        # the coupling map restricted to the hand's free joints: dq_hand = a_hand @ dx
+        a, _ = self.hand.coupling_affine()
+        free = np.asarray(self.hand.free_joints)
+        self._free_hand = free[free >= 6]
+        self._a_hand = a[6:][:, free >= 6]  # (H, Fh)
+
+    def _check_kinematics(self) -> None:
+        """MuJoCo's body and site frames must equal the kinematic model's at a random
+        configuration with a moved base."""
+        hand, m, d = self.hand, self.model, self.data
+        rng = np.random.default_rng(0)
+        q = hand.zero()[0].cpu().numpy().copy()
+        lo, hi = hand.lower.cpu().numpy()[6:], hand.upper.cpu().numpy()[6:]
+        q[6:] = lo + rng.random(len(lo)) * (hi - lo)
+        q[:6] = [0.1, -0.2, 0.3, 0.4, -0.5, 0.6]
+        q = hand.clamp(hand.apply_couplings(hand.as_q(q)))[0].cpu().numpy()
+        mujoco.mj_resetData(m, d)
+        self._place_hand(q)
+        mujoco.mj_kinematics(m, d)
+        bodies = {m.body(i).name: i for i in range(m.nbody)}
+        sites = {m.site(i).name: i for i in range(m.nsite)}
+        names = [n for n in hand.model.frames if n in bodies or n in sites]
+        absent = [n for n in hand.model.frames if n not in bodies and n not in sites]
+        if absent:
+            raise HandConfigError(
+                f"hand '{hand.spec.name}': frames {absent} of the kinematic model are neither "
+                f"bodies nor sites of {hand.model.path} in MuJoCo"
+            )
+        ours = hand.link_transforms(q, names)[0].cpu().numpy()[:, :3, 3]
+        theirs = np.array(
+            [d.xpos[bodies[n]] if n in bodies else d.site_xpos[sites[n]] for n in names]
+        )
+        error = float(np.abs(ours - theirs).max())
+        if error > _FK_CHECK_TOL_M:
+            worst = names[int(np.abs(ours - theirs).max(axis=1).argmax())]
+            raise HandConfigError(
+                f"hand '{hand.spec.name}': frames of {hand.model.path} in MuJoCo differ from "
+                f"the kinematic model by {error * 1000:.2f} mm at '{worst}' (expected < "
+                f"{_FK_CHECK_TOL_M * 1000:g} mm): the model file and the hand config disagree"
+            )
+
+    def set_object(self, convex_obj: str | Path) -> None:
+        """Use the object whose convex decomposition is ``convex_obj`` (from scale_align):
+        one compiled scene per object (setting the same unchanged file again is free)."""
+        from dexflow.objects.convex import read_convex_obj
+
+        stat = Path(convex_obj).stat()
+        key = (str(Path(convex_obj).resolve()), stat.st_mtime_ns, stat.st_size)
+        if key == self._object_key:
+            return
+        self._parts = read_convex_obj(convex_obj)
+        self._object_key = key
+        scene = self._spec.copy()
+        _add_object(scene, self._parts, self.params)
+        self._compile(scene)
+
+    # ------------------------------------------------------------------------------- state
+
+    def _place_hand(self, q: np.ndarray) -> None:
+        """Base (mocap) and joint positions of ``q (dof,)``; joint velocities stay as they are."""
+        d = self.data
+        base = base_transform(torch.as_tensor(q[None, :6], dtype=torch.float64))[0].numpy()
+        d.mocap_pos[self._mocap] = base[:3, 3]
+        d.mocap_quat[self._mocap] = _quat(base[:3, :3])
+        d.qpos[self._qpos] = q[6:]
+
+    def _reset(self, q: np.ndarray, pose: np.ndarray) -> None:
+        """Fresh data: hand at ``q`` (also the actuators' targets), object at ``pose``, at rest."""
+        m, d = self.model, self.data
+        mujoco.mj_resetData(m, d)
+        self._place_hand(q)
+        d.ctrl[:] = q[6:]
+        d.qpos[self._object_qpos] = np.concatenate([pose[:3, 3], _quat(pose[:3, :3])])
+        mujoco.mj_forward(m, d)
+
+    def _contacts(self, margin: float) -> dict[str, np.ndarray]:
+        """Hand-object contacts of the current state, closer than ``margin`` (m).
+
+        The object's geoms get ``margin`` as contact margin and gap (so the extra contacts
+        exert no force) for one ``mj_forward``, then zero again.
+
+        Returns:
+            ``body (C,)`` hand body, ``dist (C,)`` signed distance, ``point (C, 3)`` the point
+            on the hand's surface, ``normal (C, 3)`` the unit direction into the object.
+        """
+        m, d = self.model, self.data
+        m.geom_margin[self._object_geoms] = margin
+        m.geom_gap[self._object_geoms] = margin
+        try:
+            mujoco.mj_forward(m, d)
+        finally:
+            m.geom_margin[self._object_geoms] = 0.0
+            m.geom_gap[self._object_geoms] = 0.0
+        n = d.ncon
+        geom = d.contact.geom[:n].reshape(n, 2)
+        body = m.geom_bodyid[geom]  # (C, 2)
+        first_hand = self._hand_body[body[:, 0]] & (body[:, 1] == self._object)
+        second_hand = self._hand_body[body[:, 1]] & (body[:, 0] == self._object)
+        keep = (first_hand | second_hand) & (d.contact.dist[:n] < margin)
+        normal = d.contact.frame[:n, :3].copy()  # geom1 -> geom2
+        normal[second_hand] *= -1.0  # hand -> object
+        dist = d.contact.dist[:n].copy()
+        point = d.contact.pos[:n] - 0.5 * dist[:, None] * normal  # on the hand
+        hand = np.where(first_hand, body[:, 0], body[:, 1])
+        return {"body": hand[keep], "dist": dist[keep], "point": point[keep],
+                "normal": normal[keep]}  # fmt: skip
+
+    def gap(self, q: np.ndarray, pose: np.ndarray, links: list[str] | None = None) -> float:
+        """Signed distance (m) between the hand (or only ``links``) and the object placed at
+        ``q`` and ``pose``; negative when they overlap, +inf beyond 1 cm."""
+        self._require_object("gap")
+        self._reset(np.asarray(q, dtype=float), np.asarray(pose, dtype=float))
+        found = self._contacts(_GAP_RANGE_M)
+        keep = np.ones(len(found["body"]), bool)
+        if links is not None:
+            ids = [self.model.body(n).id for n in links]
+            keep = np.isin(found["body"], ids)
+        return float(found["dist"][keep].min()) if keep.any() else float("inf")
+
+    def _require_object(self, what: str) -> None:
+        if self._parts is None:
+            raise RuntimeError(f"MujocoGraspWorld.{what}: set_object first")
+
+    # ---------------------------------------------------------------------------- protocol
+
+    def targets(self, q: np.ndarray, pose: np.ndarray) -> tuple[dict, float, list[str]]:
+        """Steps 1 and 2 of the protocol: the pregrasp, grasp and squeeze configurations.
+
+        Args:
+            q: (dof,) the frame's configuration.
+            pose: (4, 4) the object's pose (already perturbed).
+
+        Returns:
+            ``{"pregrasp", "grasp", "squeeze"}`` (dof,) each, the deepest overlap (m, >= 0)
+            between a hand geom and the object's parts, and the names of the hand bodies within
+            ``contact_margin_m`` of the object.
+        """
+        self._require_object("targets")
+        p, hand, m = self.params, self.hand, self.model
+        q, pose = np.asarray(q, dtype=float), np.asarray(pose, dtype=float)
+        self._reset(q, pose)
+        found = self._contacts(p.contact_margin_m)
+        penetration = float(max(0.0, -found["dist"].min())) if len(found["dist"]) else 0.0
+        if not len(found["body"]):
+            return {"pregrasp": q.copy(), "grasp": q.copy(), "squeeze": q.copy()}, 0.0, []
+        order = np.lexsort((found["dist"], found["body"]))  # by body, closest first
+        bodies, first = np.unique(found["body"][order], return_index=True)
+        closest = order[first]
+        names = [m.body(int(b)).name for b in bodies]
+        jac = np.empty((len(bodies), 3, m.nv))
+        for k, (b, c) in enumerate(zip(bodies, closest, strict=True)):
+            mujoco.mj_jac(m, self.data, jac[k], None, found["point"][c], int(b))
+        jac = jac[:, :, self._dofs].reshape(-1, len(self._dofs)) @ self._a_hand  # (3L, Fh)
+        normal = found["normal"][closest]
+        gap = np.maximum(found["dist"][closest], 0.0)
+        solve = jac.T @ np.linalg.inv(jac @ jac.T + _DLS_DAMPING**2 * np.eye(len(jac)))
+        out = {"grasp": q.copy()}
+        for key, depth in (("squeeze", gap + p.push_m), ("pregrasp", -np.full_like(gap, p.push_m))):
+            moved = q.copy()
+            moved[self._free_hand] += solve @ (depth[:, None] * normal).reshape(-1)
+            moved = hand.clamp(hand.apply_couplings(hand.as_q(moved)))[0].cpu().numpy()
+            moved[:6] = q[:6]
+            out[key] = moved
+        return out, penetration, names
+
+    def test_frame(
+        self, q: np.ndarray, pose: np.ndarray, perturbation: Perturbation | None = None
+    ) -> dict:
+        """Run the six-direction test for one frame (see the module docs).
+
+        Args:
+            q: (dof,) hand configuration (base then joints, as stage retarget writes it).
+            pose: (4, 4) object pose in the world.
+            perturbation: Object offset, rotation and friction factor of this trial (None: the
+                nominal test).
+
+        Returns:
+            ``parts_penetration_m`` (float), ``pushed_links`` (int), ``touching (F,)`` bool per
+            finger of the hand config, ``held (6,)``, ``displacement_m (6,)``,
+            ``rotation_deg (6,)``, ``tested (6,)`` and the criteria ``contact``, ``bench``
+            (bools); directions in :data:`dexflow.simulate.DIRECTIONS` order.
+        """
+        self._require_object("test_frame")
+        p, mp, m, d = self.params, self.params.mujoco, self.model, self.data
+        q = np.asarray(q, dtype=float)
+        pose = np.asarray(pose, dtype=float)
+        if perturbation is not None:
+            pose = perturbation.object_pose(pose)
+        scale = 1.0 if perturbation is None else perturbation.friction_scale
+        m.geom_friction[:, 0] = self._friction * scale
+        try:
+            configs, penetration, pushed = self.targets(q, pose)
+            touching = np.array(
+                [bool(set(pushed) & set(fs.links)) for fs in self.hand.spec.fingers.values()]
+            )
+            held = np.zeros(6, bool)
+            displacement = np.full(6, np.nan)
+            rotation = np.full(6, np.nan)
+            tested = np.zeros(6, bool)
+            force = mp.force_scale * mp.object_mass_kg
+            for k, direction in enumerate(_DIRECTIONS):
+                tested[k] = True
+                self._reset(configs["pregrasp"], pose)
+                start = d.qpos[self._object_qpos].copy()
+                self._drive(configs["pregrasp"], configs["grasp"])
+                self._drive(configs["grasp"], configs["squeeze"])
+                d.xfrc_applied[self._object, :3] = force * direction
+                for _ in range(mp.hold_checks):
+                    mujoco.mj_step(m, d, nstep=mp.steps_per_check)
+                    displacement[k], rotation[k] = self._moved(start)
+                    if not _within(displacement[k], rotation[k], p):
+                        break
+                held[k] = bool((self._contacts(_TOUCH_M)["dist"] < _TOUCH_M).any())
+                if not _within(displacement[k], rotation[k], p):
+                    break  # DexGraspBench: the frame fails at its first failing direction
+        finally:
+            m.geom_friction[:, 0] = self._friction
+        return {
+            "parts_penetration_m": penetration,
+            "pushed_links": len(pushed),
+            "touching": touching,
+            "held": held,
+            "displacement_m": displacement,
+            "rotation_deg": rotation,
+            "tested": tested,
+            "contact": bool(tested.all() and held.all()),
+            "bench": bool(tested.all() and _within(displacement, rotation, p).all()),
+        }
+
+    def _drive(self, start: np.ndarray, end: np.ndarray) -> None:
+        """Move the actuator targets linearly from ``start`` to ``end`` (dof,) over
+        ``close_steps`` control steps of ``steps_per_control`` physics steps."""
+        mp, m, d = self.params.mujoco, self.model, self.data
+        for j in range(1, mp.close_steps + 1):
+            d.ctrl[:] = start[6:] + (end[6:] - start[6:]) * (j / mp.close_steps)
+            mujoco.mj_step(m, d, nstep=mp.steps_per_control)
+
+    def _moved(self, start: np.ndarray) -> tuple[float, float]:
+        """Displacement (m) and rotation angle (deg) of the object from ``start`` (7,) qpos."""
+        now = self.data.qpos[self._object_qpos]
+        rotvec = np.empty(3)
+        mujoco.mju_subQuat(rotvec, now[3:], start[3:])
+        return float(np.linalg.norm(now[:3] - start[:3])), float(np.degrees(np.linalg.norm(rotvec)))
+
+    def close(self) -> None:
+        """Release the model and data (the world cannot be used afterwards)."""
+        self.model = self.data = None  # type: ignore[assignment]
+
+
+def _within(displacement, rotation, p: SimulateParams):
+    """DexGraspBench's success of a test: displacement and rotation below the thresholds."""
+    return (np.asarray(displacement) < p.max_displacement_m) & (
+        np.asarray(rotation) < p.max_rotation_deg
+    )
