@@ -338,6 +338,8 @@ class MujocoGraspWorld:
         HandConfigError: The model's joints or frames in MuJoCo disagree with ``hand``.
     """
 
+    engine = "mujoco"
+
     def __init__(self, hand: RobotHand, params: SimulateParams) -> None:
         self.hand, self.params = hand, params
         self._spec = _hand_spec(hand, params)

@@ -232,8 +232,14 @@ def _simulated(stage: dict) -> dict[str, dict]:
     return {m: stage[f"simulate_{m}"] for m in METHOD_LABELS if stage.get(f"simulate_{m}")}
 
 
+def _engines(stage: dict) -> list[str]:
+    """The engines of the simulate stages (``engines``: comma-separated, the first the SSR's)."""
+    found = next((s["engines"] for s in _simulated(stage).values() if s.get("engines")), None)
+    return found.split(",") if found else ["pybullet"]
+
+
 def _engines_title(stage: dict) -> str:
-    engines = next((s.get("engines") for s in _simulated(stage).values()), None) or ["pybullet"]
+    engines = _engines(stage)
     return " and ".join(engines) + (" (SSR: the first)" if len(engines) > 1 else "")
 
 
@@ -241,8 +247,8 @@ def _engines_section(stage: dict) -> list[str]:
     """Per engine SSR and the share of frames whose single trial a perturbation overturns;
     with two engines, their per-frame agreement (DexGraspBench criterion)."""
     simulated = _simulated(stage)
-    engines = next((s.get("engines") for s in simulated.values()), None) or []
-    trials = next((s.get("perturbations", 0) for s in simulated.values()), 0)
+    engines = _engines(stage)
+    trials = max((s.get("perturbations", 0) for s in simulated.values()), default=0)
     if len(engines) < 2 and not trials:
         return []
     lines = [

@@ -713,6 +713,8 @@ def run_simulate(params: PipelineParams, layout: Layout, label: str) -> dict:
     summary = {
         **tally.counts("simulate"),
         "method": label,
+        "engines": ",".join(sp.engines),
+        "perturbations": sp.perturbations.count,
         "frames_evaluated": evaluated,
         "penetration_mean_mm": tally.mean("penetration_mean_mm"),
         "over_tolerance": tally.mean("over_tolerance", 0.0),

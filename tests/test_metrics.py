@@ -363,3 +363,26 @@ def test_contact_precision_recall_pool_counts_over_sequences():
     )
     mean_of_rates = (precision_recall(**a)["precision"] + 1.0) / 2
     assert pooled["precision"] != pytest.approx(mean_of_rates)
+
+
+def test_summary_shows_each_engine_flips_and_their_agreement(tmp_path):
+    """Two engines: the section title names both, a row per method and engine with its SSRs and
+    flipped frames, and the per-frame agreement; one engine without perturbations: no section."""
+    metrics, table, plots = _metrics_dir(tmp_path, methods=("baseline", "refine"))
+    sim = json.loads((metrics / "simulate_refine.json").read_text())
+    sim |= {"engines": "mujoco,pybullet", "perturbations": 2, "ssr_mujoco": 12.5,
+            "ssr_bench_mujoco": 12.5, "flipped_mujoco": 0.05, "ssr_pybullet": 25.0,
+            "ssr_bench_pybullet": 20.0, "flipped_pybullet": 0.1, "agree_hold": 3,
+            "agree_drop": 90, "disagree": 7}  # fmt: skip
+    (metrics / "simulate_refine.json").write_text(json.dumps(sim))
+    text = write_summary(metrics, table, plots, tmp_path / "s.md", tmp_path / "f").read_text()
+    assert "## Simulation (mujoco and pybullet (SSR: the first)" in text
+    rows = _section(text, "Simulation").splitlines()
+    assert "| DexFlow + refinement | mujoco | 12.50 | 12.50 | 5.0 |" in rows
+    assert "| DexFlow + refinement | pybullet | 25.00 | 20.00 | 10.0 |" in rows
+    assert "| DexFlow + refinement | 100 | 3 | 90 | 7 |" in rows
+    assert "each of 2 perturbed trials" in text
+
+    metrics, table, plots = _metrics_dir(tmp_path / "one", methods=("refine",))
+    text = write_summary(metrics, table, plots, tmp_path / "o.md", tmp_path / "g").read_text()
+    assert "Engines and robustness" not in text and "## Simulation (pybullet," in text

@@ -284,3 +284,22 @@ def test_perturbed_trials_make_success_robust_and_zero_trials_are_the_single_tri
     assert arrays["pybullet.bench_single"].tolist() == [True]  # the nominal trial still holds
     assert arrays["pybullet.bench"].tolist() == [False]  # but not robustly
     assert result["flipped_frames"] == 1 and not result["success_bench"]
+
+
+def test_penetrating_start_does_not_count_in_mujoco_either(scene, box_sdf):
+    """The penetration rule is the stage's, whatever the engine: a box sunk 4 mm into the palm
+    is not a counted success in MuJoCo; the clean frame after it is."""
+    from dexflow.mujoco_world import MujocoGraspWorld
+
+    hand, world, pose, folder = scene
+    closed = _closed(hand, world, pose)
+    sunk = pose.copy()
+    sunk[2, 3] -= 0.004
+    params = dataclasses.replace(world.params, stride=1)
+    mujoco = MujocoGraspWorld(hand, params)
+    mujoco.set_object(folder / "box.obj")
+    q = np.stack([closed, closed])
+    arrays, result = simulate_sequence(mujoco, q, np.stack([sunk, pose]), 0, box_sdf)
+    assert arrays["penetration_m"][0] > params.penetration_tol_m
+    assert result["engines"]["mujoco"]["success_frame"] == 1  # not frame 0
+    assert result["success_bench"] and result["success_contact"]
