@@ -373,7 +373,7 @@ class PerturbationParams:
         seed: Seed of the perturbations (per frame: the same frame gets the same trials).
     """
 
-    count: int = 0
+    count: int = 2
     position_m: float = 0.001
     rotation_deg: float = 2.0
     friction_rel: float = 0.1
@@ -391,7 +391,7 @@ class SimulateParams:
     ``max_rotation_deg`` apply to both).
     """
 
-    engines: list[str] = field(default_factory=lambda: ["pybullet"])
+    engines: list[str] = field(default_factory=lambda: ["mujoco"])
     mujoco: MujocoParams = field(default_factory=MujocoParams)
     perturbations: PerturbationParams = field(default_factory=PerturbationParams)
 

@@ -1,9 +1,9 @@
 """Stage simulate (paper §IV-B): does a frame's grasp hold the object in a physics engine?
 
-Engines (``simulate.engines``, conf group ``simulate=default|mujoco|both``): pybullet with the
-protocol below (:class:`GraspWorld`), and MuJoCo with DexGraspBench's published protocol
-(:class:`dexflow.mujoco_world.MujocoGraspWorld`), so that SSR compares with BODex and
-DexGraspBench. Every engine tests the same frames; the first engine's result is the stage's SSR,
+Engines (``simulate.engines``, conf group ``simulate=default|pybullet|both``): MuJoCo with
+DexGraspBench's published protocol (:class:`dexflow.mujoco_world.MujocoGraspWorld`, the
+default, so that SSR compares with BODex and DexGraspBench), and pybullet with the protocol
+below (:class:`GraspWorld`). Every engine tests the same frames; the first engine's result is the stage's SSR,
 and with two the summary counts the frames on which they agree (both hold, both drop) or not,
 by the DexGraspBench criterion.
 

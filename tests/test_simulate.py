@@ -14,6 +14,7 @@ import trimesh
 from dexflow.hands import load_hand
 from dexflow.objects.convex import write_convex_obj
 from dexflow.objects.sdf import SignedDistanceGrid
+from dexflow.params import PerturbationParams
 from dexflow.simulate import (
     GraspWorld,
     SimulateParams,
@@ -26,6 +27,9 @@ from dexflow.simulate import (
 from .test_hands import _gripper
 
 BOX = (0.024, 0.024, 0.03)  # sits on the gripper's palm, between its three fingers
+# The single nominal trial per frame: these tests are about the protocol and the sequence logic;
+# robust success under perturbations has tests of its own.
+SINGLE = SimulateParams(perturbations=PerturbationParams(count=0))
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +38,7 @@ def scene(tmp_path_factory):
     folder = tmp_path_factory.mktemp("simulate")
     hand = load_hand(_gripper(folder))
     write_convex_obj(folder / "box.obj", [trimesh.creation.box(BOX)])
-    world = GraspWorld(hand, hand_urdf(hand), SimulateParams())
+    world = GraspWorld(hand, hand_urdf(hand), SINGLE)
     world.set_object(folder / "box.obj")
     pose = np.eye(4)
     pose[2, 3] = 0.01 + BOX[2] / 2  # palm top at z = 1 cm
@@ -231,7 +235,7 @@ def test_penetration_rule_uses_the_mesh_not_the_bulging_convex_parts(scene, box_
     hand, world, pose, _ = scene
     q = _closed(hand, world, pose)
     write_convex_obj(tmp_path / "bulging.obj", [trimesh.creation.box(np.array(BOX) + 0.006)])
-    bulging = GraspWorld(hand, hand_urdf(hand), SimulateParams())
+    bulging = GraspWorld(hand, hand_urdf(hand), SINGLE)
     bulging.set_object(tmp_path / "bulging.obj")
     arrays, result = simulate_sequence(bulging, q[None], pose[None], 0, box_sdf)
     assert arrays["pybullet.parts_penetration_m"][0] > 0.0025
@@ -270,7 +274,8 @@ def test_perturbed_trials_make_success_robust_and_zero_trials_are_the_single_tri
     of the hand, the frame that held nominally no longer counts, and it is counted as flipped."""
     hand, world, pose, folder = scene
     closed = _closed(hand, world, pose)
-    base = dataclasses.replace(world.params, stride=1, early_stop=False)
+    no_trials = dataclasses.replace(world.params.perturbations, count=0)
+    base = dataclasses.replace(world.params, stride=1, early_stop=False, perturbations=no_trials)
     single = GraspWorld(hand, hand_urdf(hand), base)
     single.set_object(folder / "box.obj")
     arrays, result = simulate_sequence(single, closed[None], pose[None], 0, box_sdf)
