@@ -312,6 +312,34 @@ def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 
     return [{"early_exit_fps": fast, "full_fps": full, "mujoco_fps": mujoco}]
 
 
+def _real_engines(results: dict[str, dict]) -> list[str]:
+    """Per hand, method and engine the SSRs and the frames perturbations overturn; with two
+    engines their per-frame agreement (empty with one engine and no perturbations)."""
+    sims = [(h, m, s) for h, r in results.items() for m, s in r.get("simulate", {}).items()]
+    engines = sorted({e for *_, s in sims for e in str(s.get("engines", "")).split(",") if e})
+    if not sims or (len(engines) < 2 and not any(s.get("perturbations") for *_, s in sims)):
+        return []
+    lines = [
+        "| hand | method | engine | SSR % | SSR bench % | frames flipped by perturbations % |",
+        "|---|---|---|---|---|---|",
+    ]
+    for hand, method, sim in sims:
+        for engine in str(sim.get("engines", "")).split(","):
+            cells = [sim.get(f"{k}_{engine}", float("nan")) for k in ("ssr", "ssr_bench")]
+            cells.append(100 * sim.get(f"flipped_{engine}", float("nan")))
+            text = " | ".join(f"{c:.1f}" for c in cells)
+            lines.append(f"| {hand} | {method} | {engine} | {text} |")
+    if len(engines) > 1:
+        lines += ["", "| hand | method | frames | both hold | both drop | disagree |",
+                  "|---|---|---|---|---|---|"]  # fmt: skip
+        for hand, method, sim in sims:
+            counts = [int(sim.get(k, 0)) for k in ("agree_hold", "agree_drop", "disagree")]
+            lines.append(
+                f"| {hand} | {method} | {sum(counts)} | " + " | ".join(map(str, counts)) + " |"
+            )
+    return lines
+
+
 PAPER_FRAMES = 292_000  # the DexFlow dataset: 292K frames over 50 objects
 
 
@@ -474,18 +502,21 @@ def bench_real(
     sequences: int = 0,
     work: str | None = None,
     out: str | None = "reports/real.md",
+    overrides: list[str] | None = None,
 ) -> dict[str, dict]:
     """The whole pipeline (no demo stage) on a converted dataset, per hand, with its metrics.
 
     ``root`` holds canonical sequences (``dexflow convert``). For every hand the stages run in
-    ``work/<hand>`` (a temporary directory by default) with the project's ``params.yaml``
-    defaults, and the metrics stage's aggregates are tabulated per method: the numbers of the
-    README's "Real data" section. ``sequences > 0`` takes that many evenly spaced sequences.
+    ``work/<hand>`` (a temporary directory by default) with the project's ``conf/`` defaults
+    plus ``overrides`` (Hydra syntax, e.g. ``simulate=both``), and the metrics stage's aggregates
+    are tabulated per method: the numbers of the README's "Real data" section. ``sequences > 0``
+    takes that many evenly spaced sequences.
 
     Returns:
-        Per hand: ``metrics`` (the metrics stage's aggregates), ``seconds`` per stage,
-        ``sequences``, ``frames`` and ``retarget_s_per_sequence`` (CPU seconds of retarget@dexflow
-        per sequence: wall-clock time x workers / sequences).
+        Per hand: ``metrics`` (the metrics stage's aggregates), ``simulate`` (per trajectory
+        label, the simulate stage's summary), ``seconds`` per stage, ``sequences``, ``frames``
+        and ``retarget_s_per_sequence`` (CPU seconds of retarget@dexflow per sequence:
+        wall-clock time x workers / sequences).
     """
     import dataclasses
     import shutil
@@ -503,10 +534,10 @@ def bench_real(
         folder = base / hand
         folder.mkdir(parents=True, exist_ok=True)
         run = "sequential" if workers <= 1 else "local"
-        overrides = [f"hand={hand}", "data=custom", f"data.root={data_root}", f"run={run}"]
-        params = load_params(compose_params(overrides, output=folder / "params.yaml"))
+        fixed = [f"hand={hand}", "data=custom", f"data.root={data_root}", f"run={run}"]
+        params = load_params(compose_params([*fixed, *(overrides or [])], folder / "params.yaml"))
         params = dataclasses.replace(params, run=dataclasses.replace(params.run, n_jobs=workers))
-        seconds, summary, frames = {}, {}, 0
+        seconds, summary, frames, simulated = {}, {}, 0, {}
         for name, fn in _pipeline_stages(params, Layout.of(data_root, root=folder)):
             if name == "demo":
                 continue
@@ -515,8 +546,13 @@ def bench_real(
             seconds[name] = time.perf_counter() - start
             if name == "retarget@dexflow":
                 frames, count = int(summary["num_frames"]), int(summary["num_sequences"])
+            if name.startswith("simulate@"):
+                simulated[name.partition("@")[2]] = {
+                    k: v for k, v in summary.items() if k not in ("sequences", "timing")
+                }
         results[hand] = {
             "metrics": {k: v for k, v in summary.items() if k != "sequences"},
+            "simulate": simulated,
             "seconds": seconds,
             "sequences": count,
             "frames": frames,
@@ -524,7 +560,7 @@ def bench_real(
         }
     if not work:
         shutil.rmtree(base, ignore_errors=True)
-    text = _real_table(results, source, sequences, workers)
+    text = _real_table(results, source, sequences, workers, overrides or [])
     print(text)
     if out:
         from dexflow.io.atomic import atomic_path
@@ -534,8 +570,11 @@ def bench_real(
     return results
 
 
-def _real_table(results: dict[str, dict], source, sequences: int, workers: int) -> str:
+def _real_table(
+    results: dict[str, dict], source, sequences: int, workers: int, overrides: list[str] = ()
+) -> str:
     command = f"dexflow bench real {source}" + (f" --subset {sequences}" if sequences else "")
+    command += "".join(f" --set {o}" for o in overrides)
     lines = [
         "# dexflow on real captures",
         "",
@@ -554,7 +593,7 @@ def _real_table(results: dict[str, dict], source, sequences: int, workers: int) 
                 value = r["metrics"].get(f"{method}.{key}", float("nan"))
                 cells.append("—" if value is None or not np.isfinite(value) else fmt.format(value))
             lines.append(f"| {hand} | {label} | " + " | ".join(cells) + " |")
-    lines += [""]
+    lines += ["", *_real_engines(results), ""]
     for hand, r in results.items():
         total = sum(r["seconds"].values())
         lines.append(

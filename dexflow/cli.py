@@ -149,7 +149,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "real":
         if not args.root:
             raise SystemExit("dexflow bench real ROOT: give the converted dataset's root")
-        bench_real(args.root, args.hands or None, args.jobs, args.subset, args.work, args.out_real)
+        bench_real(
+            args.root, args.hands or None, args.jobs, args.subset, args.work, args.out_real,
+            overrides=args.set,
+        )  # fmt: skip
     elif args.what == "pipeline":
         workers = tuple(int(w) for w in args.workers.split(","))
         bench_pipeline(args.sequences, workers, args.out)
@@ -291,6 +294,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=int, default=2, help="real: worker processes")
     p.add_argument("--work", help="real: keep the stage outputs here (default: a temp dir)")
     p.add_argument("--out-real", default="reports/real.md", help="real: report file")
+    p.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE",
+        help="real: a Hydra override of the defaults (repeatable), e.g. --set simulate=both",
+    )  # fmt: skip
     p.set_defaults(func=_cmd_bench)
 
     p = sub.add_parser("report", help="generate reports/summary.md or reports/ablation.md")

@@ -61,3 +61,23 @@ def test_table_names_the_subset_flag_it_was_made_with():
     }
     text = _real_table({"shadow": result}, "data/real", 5, 2)
     assert "`dexflow bench real data/real --subset 5`" in text
+
+
+def test_table_shows_each_engine_and_their_agreement_and_the_overrides():
+    sim = {"engines": "mujoco,pybullet", "perturbations": 2, "ssr_mujoco": 25.0,
+           "ssr_bench_mujoco": 25.0, "flipped_mujoco": 0.02, "ssr_pybullet": 50.0,
+           "ssr_bench_pybullet": 37.5, "flipped_pybullet": 0.05, "agree_hold": 4,
+           "agree_drop": 30, "disagree": 6}  # fmt: skip
+    result = {
+        "metrics": {},
+        "simulate": {"refine": sim},
+        "seconds": {"retarget@dexflow": 1.0},
+        "sequences": 1,
+        "frames": 10,
+        "retarget_s_per_sequence": 1.0,
+    }
+    text = _real_table({"shadow": result}, "data/real", 0, 2, ["simulate=both"])
+    assert "`dexflow bench real data/real --set simulate=both`" in text
+    assert "| shadow | refine | mujoco | 25.0 | 25.0 | 2.0 |" in text
+    assert "| shadow | refine | pybullet | 50.0 | 37.5 | 5.0 |" in text
+    assert "| shadow | refine | 40 | 4 | 30 | 6 |" in text
