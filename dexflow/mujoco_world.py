@@ -2,8 +2,8 @@
 
 :class:`MujocoGraspWorld` has the interface and the result of the pybullet
 :class:`dexflow.simulate.GraspWorld` (``set_object``, ``test_frame``, ``close``), so stage
-simulate can run either engine on the same frames; :func:`perturbations` draws the perturbed
-copies of a frame that both engines test for robust success.
+simulate can run either engine on the same frames; what the two share (the push directions, the
+damped push step, the perturbed trials) is :mod:`dexflow.grasp_protocol`.
 
 The scene (one ``MjSpec`` per object, compiled once per :meth:`MujocoGraspWorld.set_object`):
 
@@ -68,27 +68,27 @@ frame's result depends neither on the frames tested before it nor on the world i
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
 import numpy as np
 import torch
 import trimesh
-from scipy.spatial.transform import Rotation
 
 from dexflow.errors import HandConfigError
-from dexflow.hands.model import _urdf_mesh_path
+from dexflow.grasp_protocol import (
+    DIRECTIONS,
+    TOUCH_M,
+    Perturbation,
+    damped_step,
+    pushed_configuration,
+)
+from dexflow.hands.model import urdf_mesh_path
 from dexflow.hands.robot import RobotHand, base_transform
-from dexflow.params import PerturbationParams, SimulateParams
+from dexflow.params import SimulateParams
 
-__all__ = ["MujocoGraspWorld", "Perturbation", "perturbations"]
+__all__ = ["MujocoGraspWorld"]
 
-_DIRECTIONS = np.array(
-    [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=float
-)  # dexflow.simulate.DIRECTIONS (not imported: simulate imports this module)
-_TOUCH_M = 1e-3  # "in contact" at the end of a test: closer than this
-_DLS_DAMPING = 1e-2  # damping (m/rad) of the targets' least-squares step
 _FK_CHECK_TOL_M = 1e-4  # MuJoCo's frames must match the kinematic model's
 _GAP_RANGE_M = 0.01  # MujocoGraspWorld.gap: +inf beyond this (MuJoCo's distances err at 10 cm)
 _HAND_SOLIMP = (0.5, 0.99, 0.0001)
@@ -98,91 +98,6 @@ _MOUNT = "dexflow_mount"
 _OBJECT = "dexflow_object"
 
 logger = logging.getLogger(__name__)
-
-
-# ---------------------------------------------------------------------------- perturbations
-
-
-@dataclass(frozen=True, eq=False)
-class Perturbation:
-    """A perturbed copy of a frame's test.
-
-    Attributes:
-        offset_m: (3,) translation of the object, in the world frame.
-        rotvec_rad: (3,) rotation vector of the object, in its own frame about its origin.
-        friction_scale: Factor on the sliding friction of every geom.
-
-    The perturbed pose is ``T(offset_m) @ pose @ R(rotvec_rad)`` (:meth:`object_pose`); the
-    whole test (contacts, targets, simulation) sees the object there, with the frame's ``q``
-    unchanged. Two perturbations are equal when all their fields are.
-    """
-
-    offset_m: np.ndarray
-    rotvec_rad: np.ndarray
-    friction_scale: float = 1.0
-
-    def __post_init__(self) -> None:
-        for name in ("offset_m", "rotvec_rad"):
-            value = np.array(getattr(self, name), dtype=float).reshape(3)
-            value.flags.writeable = False
-            object.__setattr__(self, name, value)
-        object.__setattr__(self, "friction_scale", float(self.friction_scale))
-
-    @classmethod
-    def none(cls) -> Perturbation:
-        """The identity: no offset, no rotation, friction unchanged."""
-        return cls(np.zeros(3), np.zeros(3), 1.0)
-
-    def object_pose(self, pose: np.ndarray) -> np.ndarray:
-        """The perturbed object pose (4, 4) of ``pose`` (4, 4), object -> world."""
-        rotation = np.eye(4)
-        rotation[:3, :3] = Rotation.from_rotvec(np.array(self.rotvec_rad)).as_matrix()
-        out = np.asarray(pose, dtype=float) @ rotation
-        out[:3, 3] += self.offset_m
-        return out
-
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, Perturbation):
-            return NotImplemented
-        return (
-            np.array_equal(self.offset_m, other.offset_m)
-            and np.array_equal(self.rotvec_rad, other.rotvec_rad)
-            and self.friction_scale == other.friction_scale
-        )
-
-    __hash__ = None  # type: ignore[assignment]
-
-
-def perturbations(params: PerturbationParams, frame_seed: int) -> list[Perturbation]:
-    """The ``params.count`` perturbed copies of a frame's test (deterministic per frame).
-
-    Drawn from ``np.random.default_rng([params.seed, frame_seed])``: offsets uniform in the
-    ball of radius ``position_m``, rotations about a uniformly random axis by an angle uniform
-    in ``[0, rotation_deg]``, friction factors uniform in ``[1 - friction_rel, 1 + friction_rel]``.
-
-    Args:
-        params: The perturbations' settings.
-        frame_seed: Non-negative integer naming the frame (e.g. its index).
-
-    Returns:
-        ``count`` perturbations (an empty list for ``count == 0``).
-    """
-    n = int(params.count)
-    if n <= 0:
-        return []
-    rng = np.random.default_rng([int(params.seed), int(frame_seed)])
-    directions = _unit(rng.normal(size=(n, 3)))  # (n, 3)
-    radii = params.position_m * rng.random(n) ** (1.0 / 3.0)  # uniform in the ball
-    axes = _unit(rng.normal(size=(n, 3)))
-    angles = np.radians(params.rotation_deg) * rng.random(n)
-    scales = rng.uniform(1.0 - params.friction_rel, 1.0 + params.friction_rel, n)
-    offsets, rotvecs = directions * radii[:, None], axes * angles[:, None]
-    return [Perturbation(o, r, float(s)) for o, r, s in zip(offsets, rotvecs, scales, strict=True)]
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    """Rows of ``v (n, 3)`` scaled to unit length."""
-    return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
 # -------------------------------------------------------------------------------- the scene
@@ -204,7 +119,7 @@ def _hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
     for mesh in child.meshes:  # absolute paths: the scene has no model directory of its own
         if mesh.file and not Path(mesh.file).is_absolute():
             if hand.model.format == "urdf":
-                mesh.file = str(_urdf_mesh_path(mesh.file, path.parent))
+                mesh.file = str(urdf_mesh_path(mesh.file, path.parent))
             else:
                 mesh.file = str(folder / child.meshdir / mesh.file)
     for texture in child.textures:
@@ -532,14 +447,12 @@ class MujocoGraspWorld:
         jac = jac[:, :, self._dofs].reshape(-1, len(self._dofs)) @ self._a_hand  # (3L, Fh)
         normal = found["normal"][closest]
         gap = np.maximum(found["dist"][closest], 0.0)
-        solve = jac.T @ np.linalg.inv(jac @ jac.T + _DLS_DAMPING**2 * np.eye(len(jac)))
+        depths = {"squeeze": gap + p.push_m, "pregrasp": -np.full_like(gap, p.push_m)}
+        moves = np.stack([(d[:, None] * normal).reshape(-1) for d in depths.values()], axis=1)
+        steps = damped_step(jac, moves)  # (free hand joints, 2)
         out = {"grasp": q.copy()}
-        for key, depth in (("squeeze", gap + p.push_m), ("pregrasp", -np.full_like(gap, p.push_m))):
-            moved = q.copy()
-            moved[self._free_hand] += solve @ (depth[:, None] * normal).reshape(-1)
-            moved = hand.clamp(hand.apply_couplings(hand.as_q(moved)))[0].cpu().numpy()
-            moved[:6] = q[:6]
-            out[key] = moved
+        for k, key in enumerate(depths):
+            out[key] = pushed_configuration(hand, q, self._free_hand, steps[:, k])
         return out, penetration, names
 
     def test_frame(
@@ -577,7 +490,7 @@ class MujocoGraspWorld:
             rotation = np.full(6, np.nan)
             tested = np.zeros(6, bool)
             force = mp.force_scale * mp.object_mass_kg
-            for k, direction in enumerate(_DIRECTIONS):
+            for k, direction in enumerate(DIRECTIONS):
                 tested[k] = True
                 self._reset(configs["pregrasp"], pose)
                 start = d.qpos[self._object_qpos].copy()
@@ -589,7 +502,7 @@ class MujocoGraspWorld:
                     displacement[k], rotation[k] = self._moved(start)
                     if not _within(displacement[k], rotation[k], p):
                         break
-                held[k] = bool((self._contacts(_TOUCH_M)["dist"] < _TOUCH_M).any())
+                held[k] = bool((self._contacts(TOUCH_M)["dist"] < TOUCH_M).any())
                 if not _within(displacement[k], rotation[k], p):
                     break  # DexGraspBench: the frame fails at its first failing direction
         finally:

@@ -78,6 +78,14 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from dexflow.errors import HandConfigError
+from dexflow.grasp_protocol import (
+    DIRECTIONS,
+    TOUCH_M,
+    Perturbation,
+    damped_step,
+    perturbations,
+    pushed_configuration,
+)
 from dexflow.hands.robot import RobotHand, base_transform, cached_hand
 from dexflow.io.artifacts import (
     ENGINE_KEYS,
@@ -91,7 +99,7 @@ from dexflow.io.artifacts import (
 from dexflow.io.layout import Layout
 from dexflow.io.sequence import load_sequence
 from dexflow.measures import penetration_depth, surface_distances
-from dexflow.mujoco_world import MujocoGraspWorld, Perturbation, perturbations
+from dexflow.mujoco_world import MujocoGraspWorld
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import PipelineParams, SimulateParams
 from dexflow.resume import StageOutput
@@ -106,11 +114,6 @@ __all__ = [
     "simulate_sequence",
 ]
 
-DIRECTIONS = np.array(
-    [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=float
-)
-_TOUCH_M = 1e-3  # "in contact" at the end of a test: closer than this
-_DLS_DAMPING = 1e-2  # damping (m/rad) of the push step's least squares
 _DROP_CHECK_EVERY = 10  # control steps between checks for a dropped object
 _FK_CHECK_TOL_M = 1e-4  # pybullet's link frames must match the kinematic model's
 
@@ -343,13 +346,7 @@ class GraspWorld:
         moved = np.einsum("flij,lj->fli", frames[..., :3, :3], local) + frames[..., :3, 3]
         jac = ((moved[1:] - moved[0]) / step).reshape(len(free), -1).T  # (3L, F)
         target = (-(gap + p.push_m)[:, None] * normal).reshape(-1)
-        damping = _DLS_DAMPING**2 * np.eye(len(target))
-        dq = jac.T @ np.linalg.solve(jac @ jac.T + damping, target)
-        out = q.copy()
-        out[free] += dq
-        out = hand.clamp(hand.apply_couplings(hand.as_q(out)))[0].numpy()
-        out[:6] = q[:6]
-        return out, penetration, links
+        return pushed_configuration(hand, q, free, damped_step(jac, target)), penetration, links
 
     def test_frame(
         self, q: np.ndarray, pose: np.ndarray, perturbation: Perturbation | None = None
@@ -412,7 +409,7 @@ class GraspWorld:
             displacement[k] = float(np.linalg.norm(end[:3, 3] - start[:3, 3]))
             relative = Rotation.from_matrix(end[:3, :3] @ start[:3, :3].T)
             rotation[k] = float(np.degrees(relative.magnitude()))
-            held[k] = bool(self._closest(_TOUCH_M))
+            held[k] = bool(self._closest(TOUCH_M))
         result = {
             "parts_penetration_m": penetration,
             "pushed_links": len(pushed),

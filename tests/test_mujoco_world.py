@@ -12,11 +12,11 @@ import pytest
 import trimesh
 
 from dexflow.errors import HandConfigError
+from dexflow.grasp_protocol import Perturbation, damped_step, perturbations
 from dexflow.hands import load_hand
-from dexflow.mujoco_world import MujocoGraspWorld, Perturbation, perturbations
+from dexflow.mujoco_world import MujocoGraspWorld
 from dexflow.objects.convex import write_convex_obj
 from dexflow.params import PerturbationParams, SimulateParams
-from dexflow.simulate import DIRECTIONS
 
 from .test_hands import _gripper
 
@@ -140,10 +140,19 @@ def test_scene_follows_the_protocol_settings(scene, tmp_path):
     assert light.body("f0_prox").mass[0] == pytest.approx(0.02)  # its own inertial stays
 
 
-def test_directions_are_the_pybullet_order():
-    from dexflow.mujoco_world import _DIRECTIONS
-
-    np.testing.assert_array_equal(_DIRECTIONS, DIRECTIONS)
+def test_damped_step_moves_the_points_and_takes_several_targets_at_once():
+    """Both engines' push step: J dq reaches the wanted moves (up to the damping), with the
+    least joint motion, and a stack of targets gives the steps of each target alone."""
+    rng = np.random.default_rng(0)
+    jac = rng.normal(size=(6, 9))
+    moves = rng.normal(size=(6, 2)) * 0.01
+    steps = damped_step(jac, moves)
+    np.testing.assert_allclose(jac @ steps, moves, atol=1e-5)
+    least_norm = np.linalg.pinv(jac) @ moves
+    np.testing.assert_allclose(steps, least_norm, atol=1e-5)  # damping: 1e-4 of the step
+    assert np.linalg.norm(steps) <= np.linalg.norm(least_norm)
+    for k in range(2):
+        np.testing.assert_allclose(damped_step(jac, moves[:, k]), steps[:, k], rtol=1e-12)
 
 
 # --------------------------------------------------------------------------------- protocol
