@@ -21,13 +21,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from dexflow.errors import HandConfigError
 
-__all__ = [
-    "Geometry",
-    "KinematicModel",
-    "load_kinematic_model",
-    "resolve_model_path",
-    "urdf_mesh_path",
-]
+__all__ = ["Geometry", "KinematicModel", "load_kinematic_model", "resolve_model_path"]
 
 
 def resolve_model_path(model: str, base_dir: str | Path | None = None) -> Path:
@@ -248,7 +242,7 @@ def _origin(element) -> np.ndarray:
     return RigidTransform.from_components(xyz, Rotation.from_euler("xyz", rpy)).as_matrix()
 
 
-def urdf_mesh_path(filename: str, urdf_dir: Path) -> Path:
+def _urdf_mesh_path(filename: str, urdf_dir: Path) -> Path:
     if filename.startswith("package://"):
         rel = filename[len("package://") :]
         for candidate in (urdf_dir / rel.partition("/")[2], urdf_dir / rel, urdf_dir.parent / rel):
@@ -281,7 +275,7 @@ def _urdf_geometries(path: Path) -> list[Geometry]:
                 size = (float(shape.get("radius")), float(shape.get("length")) / 2)
                 mesh = _primitive(shape.tag, size, transform)
             elif shape.tag == "mesh":
-                mesh_path = urdf_mesh_path(shape.get("filename"), path.parent)
+                mesh_path = _urdf_mesh_path(shape.get("filename"), path.parent)
                 if not mesh_path.is_file():
                     raise HandConfigError(
                         f"{path}: link '{link.get('name')}' collision mesh "
