@@ -262,9 +262,9 @@ def bench_refine(
 
 def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 6) -> list[dict]:
     """Grasp-test throughput (tested frames per second, one core) of both engines on the same
-    refined demo frames after first contact, in one run: pybullet (the stage's protocol with
-    early exits, and all six full tests), MuJoCo (DexGraspBench's protocol), and the ratio of
-    MuJoCo to pybullet. Needs `dvc repro`."""
+    refined demo frames after first contact, in one run: pybullet (with the stage's early exits,
+    and all six full tests), MuJoCo (DexGraspBench's protocol, the stage's default engine), and
+    the ratio of MuJoCo to pybullet. Needs `dvc repro`."""
     import dataclasses
 
     from dexflow.config import load_params
@@ -300,10 +300,10 @@ def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 
     mujoco, mujoco_tests, mujoco_held = run(MujocoGraspWorld(hand, params))
     n = len(jobs) * frames
     print(f"hand {hand_name}, {n} refined frames after first contact, 1 thread")
-    print(f"pybullet, early exits (the stage): {fast:7.2f} frames/s ({fast_tests} direction tests, "
+    print(f"pybullet, early exits:             {fast:7.2f} frames/s ({fast_tests} direction tests, "
           f"{fast_held} frames hold by DexGraspBench's criterion)")  # fmt: skip
     print(f"pybullet, all six full tests:      {full:7.2f} frames/s ({full_tests} direction tests)")
-    print(f"mujoco (DexGraspBench protocol):   {mujoco:7.2f} frames/s ({mujoco_tests} direction "
+    print(f"mujoco (the stage's default):      {mujoco:7.2f} frames/s ({mujoco_tests} direction "
           f"tests, {mujoco_held} frames hold)")  # fmt: skip
     print(f"mujoco / pybullet (early exits):   {mujoco / fast:7.2f}x")
     print(f"pybullet early exits / full:       {fast / full:7.2f}x")
@@ -524,10 +524,10 @@ def bench_real(
 
     from dexflow.config import compose_params, load_params
 
-    source = Path(root)
+    source = Path(root).resolve()  # stages run in the work folder: no relative paths
     if not StageDir(source).sequences_dir.is_dir():
         raise FileNotFoundError(f"{source}: no sequences/ folder (convert a dataset first)")
-    base = Path(work) if work else Path(tempfile.mkdtemp(prefix="dexflow-real-"))
+    base = Path(work).resolve() if work else Path(tempfile.mkdtemp(prefix="dexflow-real-"))
     data_root = _subset_root(source, sequences, base / "subset")
     results: dict[str, dict] = {}
     for hand in hands or ["shadow", "allegro"]:

@@ -35,8 +35,11 @@ Definitions (per sequence; the aggregate is the mean over sequences unless said 
   definition): fraction of frames with penetration above ``pd_violation_m``, self-penetration
   above ``spd_violation_m`` or a joint outside its limits by more than ``limit_tolerance_rad``.
 - ``ssr`` (%): simulation success rate, the share of sequences that stage simulate found to
-  hold the object (paper criterion: contact kept in six gravity directions, from a frame within
-  the penetration tolerance); ``ssr_bench`` (%): the DexGraspBench criterion (< 5 cm, < 15°).
+  hold the object, by its first engine (``simulate.engines``; MuJoCo by default) and the paper's
+  criterion (contact kept under all six pushes, from a frame within the penetration tolerance,
+  robust under ``simulate.perturbations``); ``ssr_bench`` (%): the DexGraspBench criterion
+  (< 5 cm, < 15° under all six). ``reports/metrics/simulate_<method>.json`` names the engines
+  and has each engine's SSRs.
 - ``contact.flicker_raw`` / ``contact.flicker_final``: contact state changes per finger per
   second before and after frame-to-frame inference (method-independent: the contact stage runs
   on the DexFlow trajectory).
@@ -295,7 +298,9 @@ def run_metrics(params: PipelineParams, layout: Layout) -> dict:
     stage = StageOutput(
         out,
         "metrics",
-        {"hand": params.hand, "metrics": params.metrics},
+        # simulate's params too: its summaries (ssr) are read, and a resumed run must not reuse
+        # entries made from another simulation's
+        {"hand": params.hand, "metrics": params.metrics, "simulate": params.simulate},
         inputs=[layout.trajectory(m) for m in METHODS]
         + [contacts, aligned]
         + [layout.simulate(m) for m in METHODS],

@@ -507,6 +507,7 @@ class MujocoGraspWorld:
                     break  # DexGraspBench: the frame fails at its first failing direction
         finally:
             m.geom_friction[:, 0] = self._friction
+        bench = bool(tested.all() and _within(displacement, rotation, p).all())
         return {
             "parts_penetration_m": penetration,
             "pushed_links": len(pushed),
@@ -515,8 +516,8 @@ class MujocoGraspWorld:
             "displacement_m": displacement,
             "rotation_deg": rotation,
             "tested": tested,
-            "contact": bool(tested.all() and held.all()),
-            "bench": bool(tested.all() and _within(displacement, rotation, p).all()),
+            "contact": bench and bool(held.all()),
+            "bench": bench,
         }
 
     def _drive(self, start: np.ndarray, end: np.ndarray) -> None:

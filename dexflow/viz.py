@@ -412,7 +412,7 @@ def record_sequence(
     Raises:
         MissingInputError: the sequence or trajectory file is missing (names the file and the
             DVC stage that writes it). A missing contact file only logs a warning.
-        SequenceFormatError: an input file has the wrong fields or shapes.
+        ArtifactError: a trajectory or contact file has the wrong fields, shapes or joints.
     """
     from dexflow.objects.mesh import load_mesh
 

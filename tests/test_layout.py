@@ -234,3 +234,14 @@ def test_project_root_needs_the_config_file_not_just_conf(tmp_path, monkeypatch)
         pytest.skip("the temporary directory lies inside a project")
     with pytest.raises(ConfigError, match=r"conf/config\.yaml"):
         project_root()
+
+
+def test_sequence_names_may_hold_dots(tmp_path):
+    """``take.001`` is a name, not a stem and a suffix: its file is ``take.001.npz``, whether it
+    is given as a name or as the path of that file."""
+    stage = StageDir(tmp_path)
+    assert stage.sequence("take.001") == tmp_path / "sequences" / "take.001.npz"
+    assert (
+        stage.sequence(tmp_path / "x" / "take.001.npz") == tmp_path / "sequences" / "take.001.npz"
+    )
+    assert stage.sequence("take.001") != stage.sequence("take.002")

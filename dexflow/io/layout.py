@@ -99,8 +99,12 @@ class StageDir:
         return self.root / "summary.json"
 
     def sequence(self, name: str | Path) -> Path:
-        """The file of sequence ``name`` (a name, or any path whose stem is the name)."""
-        return self.sequences_dir / f"{Path(name).stem}.npz"
+        """The file of sequence ``name``: a name (dots allowed, ``take.001``), or the path of a
+        sequence file (``.../take.001.npz``)."""
+        base = Path(name).name
+        if base.endswith(".npz"):
+            base = base[: -len(".npz")]
+        return self.sequences_dir / f"{base}.npz"
 
     def sequence_files(self) -> list[Path]:
         """Every ``sequences/*.npz``, sorted by name (what a stage maps over).
