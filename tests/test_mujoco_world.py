@@ -19,6 +19,7 @@ from dexflow.objects.convex import write_convex_obj
 from dexflow.params import PerturbationParams, SimulateParams
 
 from .test_hands import _gripper
+from .test_simulate import _closed  # the same closing, through this world's gap
 
 BOX = (0.024, 0.024, 0.03)  # sits on the gripper's palm, between its three fingers
 KEYS = ("parts_penetration_m", "pushed_links", "touching", "held", "displacement_m",
@@ -37,20 +38,6 @@ def scene(tmp_path_factory):
     pose = np.eye(4)
     pose[2, 3] = 0.01 + BOX[2] / 2  # palm top at z = 1 cm
     return hand, world, pose, folder, _closed(hand, world, pose)
-
-
-def _closed(hand, world, pose) -> np.ndarray:
-    """Tilt each finger inward (negative ``j0``) until it touches the box (within 0.5 mm)."""
-    q = hand.zero()[0].numpy().copy()
-    for f in range(3):
-        j0 = hand.joint_names.index(f"f{f}_j0")
-        for angle in np.linspace(0.0, -0.5, 501):
-            q[j0] = angle
-            if world.gap(q, pose, [f"f{f}_prox", f"f{f}_dist"]) < 5e-4:
-                break
-        else:
-            raise AssertionError(f"finger {f} never reached the box")
-    return q
 
 
 def _opened(hand) -> np.ndarray:
