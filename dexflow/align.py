@@ -3,7 +3,13 @@
 The whole scene (keypoints, object poses and meshes) is scaled by the hand's factor ``s`` about
 the world origin: a similarity transform, so every contact and clearance of the human data keeps
 its shape, only ``s`` times larger. Then each human fingertip is moved along its distal bone by
-the hand's fingertip offset (metres, after scaling).
+the hand's fingertip offset (metres, after scaling). A human hand of the other side than the
+robot hand (a ``side: left`` sequence that ``dexflow convert`` did not mirror, for the usual
+right robot hand) is first mirrored with its whole scene (:mod:`dexflow.io.mirror`: keypoints,
+object poses, and a mirrored copy of the object), so the robot tracks the motion it can
+reproduce. A sequence whose fingertips never come within
+:data:`~dexflow.io.sequence.NEAR_OBJECT_M` of the object is kept with a warning (its entry's
+``warning``): there is no contact to retarget.
 
 Per object, computed once whatever the number of sequences using it, at the scaled size:
 
@@ -27,15 +33,18 @@ from pathlib import Path
 
 import numpy as np
 
-from dexflow.human.keypoints import FINGER_KEYPOINTS
+from dexflow.errors import DexflowError, MeshError
+from dexflow.geometry import world_to_object
+from dexflow.human.keypoints import FINGER_KEYPOINTS, FINGERTIPS
 from dexflow.io.atomic import save_json, save_npz
 from dexflow.io.layout import Layout, ObjectPaths, StageDir
-from dexflow.io.sequence import Sequence, load_sequence, save_sequence
+from dexflow.io.mirror import mirror_mesh, mirror_sequence
+from dexflow.io.sequence import NEAR_OBJECT_M, Sequence, load_sequence, save_sequence
 from dexflow.objects.convex import convex_decomposition, write_convex_obj
 from dexflow.objects.mesh import load_mesh, write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.objects.surface import sample_surface
-from dexflow.params import PipelineParams
+from dexflow.params import HandParams, PipelineParams
 from dexflow.resume import StageOutput
 from dexflow.runner import StageSpec
 
@@ -79,18 +88,22 @@ def scale_sequence(seq: Sequence, scale: float, fingertip_offsets: dict[str, flo
     return replace(seq, keypoints=kp, obj_pose=pose, extras=extras)
 
 
-def _object_key(mesh_rel: str) -> str:
+def _object_key(mesh_rel: str, mirror: bool = False) -> str:
     stem = Path(mesh_rel).stem
+    if mirror:
+        stem, mesh_rel = f"{stem}_mirrored", f"{mesh_rel}|mirrored"
     digest = hashlib.sha1(mesh_rel.encode()).hexdigest()[:8]
     return f"{stem}-{digest}"
 
 
 @dataclass(frozen=True)
 class ObjectJob:
-    """One object to precompute: its mesh (relative to the data root) and output key."""
+    """One object to precompute: its mesh (relative to the data root), output key, and whether
+    it is mirrored (the object of a left hand)."""
 
     mesh_rel: str
     key: str
+    mirror: bool = False
 
 
 def prepare_object(job: ObjectJob, in_root: Path, out: ObjectPaths, params: PipelineParams) -> dict:
@@ -98,6 +111,8 @@ def prepare_object(job: ObjectJob, in_root: Path, out: ObjectPaths, params: Pipe
     cfg = params.scale_align
     scale = params.hand.scale
     mesh = load_mesh(in_root / job.mesh_rel)
+    if job.mirror:
+        mesh = mirror_mesh(mesh)
     mesh.apply_scale(scale)
     write_obj(out.mesh, mesh)
     sdf = SignedDistanceGrid.from_mesh(mesh, spacing=cfg.sdf_spacing_m, padding=cfg.sdf_padding_m)
@@ -126,6 +141,8 @@ def prepare_object(job: ObjectJob, in_root: Path, out: ObjectPaths, params: Pipe
         "sdf_shape": list(sdf.values.shape),
         "sdf_spacing_m": sdf.spacing,
     }
+    if job.mirror:
+        meta["mirrored"] = True
     save_json(out.meta, meta)
     return meta
 
@@ -135,17 +152,50 @@ def align_sequence(
 ) -> dict:
     """Scale one sequence file and write it to ``out`` (stage scale_align's directory)."""
     seq = load_sequence(path, data_root=in_root)
-    aligned = scale_sequence(seq, params.hand.scale, params.hand.fingertip_offsets)
     mesh = out.object(key).mesh.relative_to(out.root).as_posix()
+    if _mirror(seq, params.hand):
+        seq = replace(mirror_sequence(seq, mesh), mirrored=not seq.mirrored)
+    aligned = scale_sequence(seq, params.hand.scale, params.hand.fingertip_offsets)
     aligned = replace(aligned, obj_mesh=mesh)
     save_sequence(out.sequence(path), aligned, data_root=out.root)
-    return {"frames": aligned.num_frames, "object": key}
+    entry = {"frames": aligned.num_frames, "object": key}
+    closest, frame = _closest_fingertip(aligned, SignedDistanceGrid.load(out.object(key).sdf))
+    entry["closest_fingertip_mm"] = round(closest / params.hand.scale * 1000, 3)
+    if closest / params.hand.scale > NEAR_OBJECT_M:
+        entry["warning"] = (
+            f"the hand never comes within {NEAR_OBJECT_M * 1000:.0f} mm of the object (nearest "
+            f"fingertip {entry['closest_fingertip_mm']:.0f} mm, frame {frame}): are obj_pose "
+            "and the keypoints in one world frame and unit?"
+        )
+    return entry
 
 
-def _mesh_of(path: Path) -> str:
-    """The ``obj_mesh`` field of a sequence file, read without validating the rest."""
-    with np.load(path, allow_pickle=False) as data:
-        return str(data["obj_mesh"])
+def _mirror(seq: Sequence, hand: HandParams) -> bool:
+    """Whether the sequence's hand, as it is stored, is of the other side than the robot hand
+    (a ``mirrored`` sequence or hand model is of the other side than its ``side`` says)."""
+    other = {"right": "left", "left": "right"}
+    human = other[seq.side] if seq.mirrored else seq.side
+    side = getattr(hand, "side", "right")
+    robot = other[side] if getattr(hand, "mirrored", False) else side
+    return human != robot
+
+
+def _closest_fingertip(seq: Sequence, sdf: SignedDistanceGrid) -> tuple[float, int]:
+    """The smallest fingertip-to-surface signed distance over the tracked frames, and its
+    frame."""
+    frames = np.flatnonzero(seq.valid_mask & np.isfinite(seq.keypoints).all(axis=(1, 2)))
+    local = world_to_object(seq.keypoints[frames][:, list(FINGERTIPS)], seq.obj_pose[frames])
+    distance = sdf.query(local).min(axis=1)
+    best = int(np.argmin(distance))
+    return float(distance[best]), int(frames[best])
+
+
+def _object_of(path: Path, in_root: Path, hand: HandParams) -> ObjectJob:
+    """The object a sequence file needs; raises SequenceFormatError for a bad file (its mesh
+    missing or outside the data root) before anything reads the mesh."""
+    seq = load_sequence(path, data_root=in_root)
+    mirror = _mirror(seq, hand)
+    return ObjectJob(seq.obj_mesh, _object_key(seq.obj_mesh, mirror), mirror)
 
 
 def run_scale_align(params: PipelineParams, layout: Layout) -> dict:
@@ -169,14 +219,14 @@ def run_scale_align(params: PipelineParams, layout: Layout) -> dict:
     )
     files = stage.start()
 
-    mesh_of: dict[str, str | None] = {}
+    job_of: dict[str, ObjectJob] = {}
     errors: dict[str, str] = {}
     for path in files:
         try:
-            mesh_of[path.stem] = _mesh_of(path)
-        except Exception as exc:  # reported per sequence below
-            errors[path.stem] = f"cannot read obj_mesh ({type(exc).__name__}: {exc})"
-    jobs = sorted({ObjectJob(m, _object_key(m)) for m in mesh_of.values()}, key=lambda j: j.key)
+            job_of[path.stem] = _object_of(path, in_root, params.hand)
+        except DexflowError as exc:  # dropped, reported per sequence below
+            errors[path.stem] = f"{type(exc).__name__}: {exc}"
+    jobs = sorted(set(job_of.values()), key=lambda j: j.key)
     object_results = stage.map(
         lambda job: prepare_object(job, in_root, out.object(job.key), params),
         jobs,
@@ -189,9 +239,10 @@ def run_scale_align(params: PipelineParams, layout: Layout) -> dict:
     objects = {r.item.key: r for r in object_results}
 
     def run_one(path: Path) -> dict:
-        obj = objects[_object_key(mesh_of[path.stem])]
-        if not obj.ok:
-            raise RuntimeError(f"object {obj.item.mesh_rel} failed: {obj.error}")
+        obj = objects[job_of[path.stem].key]
+        if not obj.ok:  # the object's own failure decides: bad mesh, or the machine (retried)
+            error = RuntimeError if obj.retry else MeshError
+            raise error(f"object {obj.item.mesh_rel} failed: {obj.error}")
         return align_sequence(path, in_root, out, params, obj.item.key)
 
     todo = [p for p in files if p.stem not in errors]

@@ -53,23 +53,57 @@ def _cmd_params(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from dexflow.errors import SequenceFormatError
+    from dexflow.errors import DexflowError
     from dexflow.io.sequence import load_sequence
 
     paths = []
     for p in args.paths:
         p = Path(p)
-        paths += sorted(p.glob("**/*.npz")) if p.is_dir() else [p]
+        if p.is_dir():  # hidden files (._name.npz, .name.tmp.npz) are not sequences
+            found = sorted(p.glob("**/*.npz"))
+            paths += [
+                f for f in found if not any(s.startswith(".") for s in f.relative_to(p).parts)
+            ]
+        else:
+            paths.append(p)
     bad = 0
+    meshes: dict[Path, object] = {}
     for path in paths:
         try:
             seq = load_sequence(path, data_root=args.data_root)
-            print(f"ok   {path}: {seq.num_frames} frames, {seq.obj_name}, {seq.side}")
-        except SequenceFormatError as exc:
+            note = _check_mesh(path, seq, Path(args.data_root), meshes) if args.data_root else ""
+            print(f"ok   {path}: {seq.num_frames} frames, {seq.obj_name}, {seq.side}{note}")
+        except DexflowError as exc:
             bad += 1
             print(f"FAIL {exc}")
     print(f"{len(paths) - bad} valid, {bad} invalid")
     return 1 if bad or not paths else 0
+
+
+def _check_mesh(path: Path, seq, data_root: Path, meshes: dict) -> str:
+    """Load the sequence's mesh as scale_align will (MeshError if empty, unreadable or in
+    millimetres); a warning if the fingertips never come near it."""
+    from dexflow.data.adapters import fingertip_surface_distance
+    from dexflow.errors import MeshError
+    from dexflow.io.sequence import NEAR_OBJECT_M, mesh_file
+    from dexflow.objects.mesh import load_mesh
+
+    file = mesh_file(seq.obj_mesh, data_root)
+    if file not in meshes:
+        try:
+            meshes[file] = load_mesh(file)
+        except MeshError as exc:
+            meshes[file] = exc
+    if isinstance(meshes[file], MeshError):
+        raise MeshError(f"{path}: field 'obj_mesh': {meshes[file]}")
+    gap = fingertip_surface_distance(seq, meshes[file], frames=100)
+    if len(gap) and gap.min() > NEAR_OBJECT_M:
+        return (
+            f"; WARNING: the fingertips never come within {NEAR_OBJECT_M * 1000:.0f} mm of "
+            f"the object (nearest {gap.min() * 1000:.0f} mm): are obj_pose and the keypoints "
+            "in one world frame and unit?"
+        )
+    return ""
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -333,12 +367,19 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    import yaml
+
     from dexflow.errors import DexflowError
 
     try:
         return args.func(args)
     except DexflowError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except yaml.YAMLError as exc:  # a hand yaml or config file the user wrote
+        from dexflow.config import yaml_error_message
+
+        print(f"error: {yaml_error_message(exc)}", file=sys.stderr)
         return 2
 
 

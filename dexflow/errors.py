@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 __all__ = [
@@ -9,13 +10,16 @@ __all__ = [
     "ConfigError",
     "DexflowError",
     "HandConfigError",
+    "IncompleteStageError",
     "MeshError",
     "SequenceFormatError",
 ]
 
 
 class DexflowError(Exception):
-    """Base class of every error dexflow raises on purpose."""
+    """Base class of every error dexflow raises on purpose: something the user gave (data,
+    config, a hand) is wrong, so running again cannot help. A stage drops a sequence that raises
+    one and goes on; any other exception fails the stage (see :class:`IncompleteStageError`)."""
 
 
 class ConfigError(DexflowError, ValueError):
@@ -58,3 +62,24 @@ class SequenceFormatError(DexflowError, ValueError):
         if frame is not None:
             where += f", frame {frame}"
         super().__init__(f"{where}: expected {expected}, found {found}")
+
+
+class IncompleteStageError(RuntimeError):
+    """Items of a stage failed for a reason other than their input (I/O, memory, a killed
+    worker, an unexpected error). The stage must fail: its finished items are kept and a rerun
+    retries the others.
+
+    Attributes:
+        stage: The stage's label.
+        failed: Per item name its error.
+    """
+
+    def __init__(self, stage: str, failed: Mapping[str, str]) -> None:
+        self.stage = stage
+        self.failed = dict(failed)
+        lines = "".join(f"\n  {name}: {error}" for name, error in sorted(self.failed.items()))
+        super().__init__(
+            f"{stage}: {len(self.failed)} item(s) failed for a reason other than their input; "
+            f"the finished ones are kept: run `dvc repro` again to retry these (if one fails "
+            f"the same way again, remove it from the data or report the error):{lines}"
+        )

@@ -6,6 +6,12 @@ Backends (``run.backend``, ``conf/run/*.yaml``): ``sequential`` (this process), 
 input order whatever the backend, so outputs are deterministic. An item that raises does not
 stop the others: its error is returned in its :class:`ItemResult`, the same way for every
 backend. Every backend drives a tqdm progress bar as items complete.
+
+Errors are of two kinds. A :class:`~dexflow.errors.DexflowError` says the item's input is bad
+(a malformed sequence, a degenerate mesh): rerunning cannot help, so the item is reported and
+skipped. Anything else (the machine: ``OSError`` such as a full disk, ``MemoryError``, a worker
+killed by the OS or a lost Ray node; or an unexpected error) is marked ``retry``: the stage must
+fail, so that DVC does not cache a partial output and a rerun retries the item.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ from typing import TYPE_CHECKING, Any, Generic, TypeVar
 from joblib import Parallel, delayed
 from tqdm.auto import tqdm
 
-from dexflow.errors import ConfigError
+from dexflow.errors import ConfigError, DexflowError
 
 if TYPE_CHECKING:
     from dexflow.params import RunParams
@@ -35,12 +41,17 @@ RAY_MISSING = "run.backend 'ray' needs Ray: install the ray extra: pip install -
 
 @dataclass
 class ItemResult(Generic[T]):
-    """Outcome of one item: ``value`` if it succeeded, else ``error`` (a one-line reason)."""
+    """Outcome of one item: ``value`` if it succeeded, else ``error`` (a one-line reason).
+
+    ``retry`` is True when the error is not the input's (I/O, memory, a killed worker, an
+    unexpected exception): such an item must fail its stage, not be skipped.
+    """
 
     item: Any
     value: T | None = None
     error: str | None = None
     details: str | None = None
+    retry: bool = False
 
     @property
     def ok(self) -> bool:
@@ -53,13 +64,17 @@ class ItemResult(Generic[T]):
         return {"status": "failed", "error": self.error}
 
 
+def _reason(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}"
+
+
 def _run(func: Callable[[Any], T], item: Any) -> ItemResult[T]:
     try:
         return ItemResult(item, value=func(item))
-    except Exception as exc:  # one bad item must not take the others down
-        return ItemResult(
-            item, error=f"{type(exc).__name__}: {exc}", details=traceback.format_exc()
-        )
+    except DexflowError as exc:  # the item's input is bad: reported, the others go on
+        return ItemResult(item, error=_reason(exc), details=traceback.format_exc())
+    except Exception as exc:  # the machine or a bug: the others go on, the stage will fail
+        return ItemResult(item, error=_reason(exc), details=traceback.format_exc(), retry=True)
 
 
 def _run_in(cwd: str, func: Callable[[Any], T], item: Any) -> ItemResult[T]:
@@ -71,6 +86,7 @@ def _run_in(cwd: str, func: Callable[[Any], T], item: Any) -> ItemResult[T]:
             item,
             error=f"RuntimeError: the driver's directory {cwd} does not exist on this Ray node "
             f"({exc}); run dexflow from a filesystem shared by every node",
+            retry=True,
         )
     return _run(func, item)
 
@@ -129,11 +145,22 @@ def map_items(
 
 
 def _map_joblib(func: Callable, items: list, n_jobs: int, bar: tqdm) -> list[ItemResult]:
+    """joblib processes. A worker that dies (killed by the OS for memory, a crash in native
+    code) breaks the pool: the items without a result then fail with ``retry``."""
     runner = Parallel(n_jobs=n_jobs, return_as="generator")  # in input order, as they come
-    results = []
-    for result in runner(delayed(_run)(func, item) for item in items):
-        results.append(result)
-        bar.update()
+    results: list[ItemResult] = []
+    try:
+        for result in runner(delayed(_run)(func, item) for item in items):
+            results.append(result)
+            bar.update()
+    except Exception as exc:  # only the pool itself raises here (_run catches the items')
+        reason = _reason(exc).splitlines()[0].split(". ")[0]
+        log.error("worker pool failed after %d of %d items: %s", len(results), len(items), reason)
+        results += [
+            ItemResult(item, error=f"no result, the worker pool failed ({reason})",
+                       details=traceback.format_exc(), retry=True)
+            for item in items[len(results):]
+        ]  # fmt: skip
     return results
 
 
@@ -180,8 +207,8 @@ def _map_ray(
                 results[index] = ray.get(ref)
             except ray.exceptions.RayError as exc:  # the worker died (crash, memory, node lost)
                 results[index] = ItemResult(
-                    items[index], error=f"{type(exc).__name__}: {exc}".splitlines()[0],
-                    details=str(exc),
+                    items[index], error=_reason(exc).splitlines()[0], details=str(exc),
+                    retry=True,
                 )  # fmt: skip
             bar.update()
     return results  # type: ignore[return-value]

@@ -9,7 +9,8 @@ value is out of range.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Any
 
 from dexflow.errors import ConfigError
@@ -43,6 +44,35 @@ DATA_GENERATORS = ("demo",)
 def _require(condition: bool, key: str, expected: str, found: Any) -> None:
     if not condition:
         raise ConfigError(f"{key}: expected {expected}, found {found!r}")
+
+
+def _check_numbers(section: Any, prefix: str, signed: tuple[str, ...] = ()) -> None:
+    """Every number of a params section (nested sections, lists and pairs included) is finite
+    and, unless its key is in ``signed``, >= 0: weights, distances, counts, rates and seeds
+    all are. Stricter ranges are checked by name."""
+    values = (
+        {f.name: getattr(section, f.name) for f in fields(section)}
+        if is_dataclass(section)
+        else dict(section)
+    )
+    for name, value in values.items():
+        key = f"{prefix}.{name}"
+        if is_dataclass(value) or isinstance(value, dict):
+            _check_numbers(value, key, signed)
+            continue
+        items = value if isinstance(value, (list, tuple)) else [value]
+        for i, item in enumerate(items):
+            if is_dataclass(item):  # e.g. the hand's keypoints and couplings
+                _check_numbers(item, f"{key}[{i}]", signed)
+            elif isinstance(item, (int, float)) and not isinstance(item, bool):
+                _require(math.isfinite(item), key, "a finite number", value)
+                _require(name in signed or item >= 0, key, ">= 0", value)
+
+
+def _require_pair(pair: Any, key: str, positive: bool = False) -> None:
+    """A ``[lo, hi]`` range: two numbers, ``lo <= hi`` (and ``lo > 0`` if ``positive``)."""
+    ok = len(pair) == 2 and pair[0] <= pair[1] and (pair[0] > 0 or not positive)
+    _require(ok, key, f"[lo, hi] with {'0 <' if positive else '0 <='} lo <= hi", list(pair))
 
 
 @dataclass
@@ -163,6 +193,16 @@ class DemoConfig:
 
 
 def _validate_demo(d: DemoConfig) -> None:
+    _check_numbers(d, "demo")
+    for key in ("release_probability", "inside_fraction", "hover_fraction",
+                "tracking_loss_probability"):  # fmt: skip
+        _require(getattr(d, key) <= 1, f"demo.{key}", "within [0, 1]", getattr(d, key))
+    for key in ("inside_depth_m", "hover_gap_m", "dropout_length", "tracking_loss_length",
+                "tracking_loss_distance_m"):  # fmt: skip
+        _require_pair(getattr(d, key), f"demo.{key}")
+    _require_pair(d.hand_scale, "demo.hand_scale", positive=True)
+    _require(0 < d.sdf_spacing_m <= 0.02, "demo.sdf_spacing_m", "within (0, 0.02] metres",
+             d.sdf_spacing_m)  # fmt: skip
     _require(d.fps > 0, "demo.fps", "> 0", d.fps)
     _require(
         2 <= d.min_frames <= d.max_frames,
@@ -256,6 +296,11 @@ def _validate_retarget(r: RetargetParams) -> None:
     _require(
         r.method in ("dexflow", "position"), "retarget.method", "'dexflow' or 'position'", r.method
     )
+    for key in ("base_sigma_m", "base_sigma_rad", "jump_threshold_m"):  # divisors, thresholds
+        _require(getattr(r, key) > 0, f"retarget.{key}", "> 0", getattr(r, key))
+    _require(r.global_search.max_evals >= 1, "retarget.global_search.max_evals", ">= 1",
+             r.global_search.max_evals)  # fmt: skip
+    _check_numbers(r, "retarget")
     modes = ("first_frame", "every_frame", "off")
     _require(
         r.global_search.mode in modes,
@@ -524,9 +569,30 @@ def validate(params: PipelineParams) -> PipelineParams:
     Raises:
         ConfigError: naming the first key whose value is wrong, what was expected and found.
     """
+    _require(params.seed >= 0, "seed", ">= 0", params.seed)
+    _check_numbers(params.hand, "hand", signed=("fingertip_offsets", "offset", "ratio"))
+    for finger, offset in params.hand.fingertip_offsets.items():
+        _require(abs(offset) <= 0.05, f"hand.fingertip_offsets.{finger}",
+                 "within [-0.05, 0.05] metres", offset)  # fmt: skip
+    for i, kp in enumerate(params.hand.keypoints):  # a point on a link: centimetres from it
+        _require(max(map(abs, kp.offset)) <= 0.2, f"hand.keypoints[{i}].offset",
+                 "[x, y, z] within [-0.2, 0.2] metres", kp.offset)  # fmt: skip
+    for i, c in enumerate(params.hand.couplings):
+        _require(abs(c.ratio) <= 10, f"hand.couplings[{i}].ratio", "within [-10, 10]", c.ratio)
+        _require(abs(c.offset) <= 2 * math.pi, f"hand.couplings[{i}].offset",
+                 "within [-2 pi, 2 pi] rad", c.offset)  # fmt: skip
     _validate_demo(params.demo)
+    sa = params.scale_align
+    _check_numbers(sa, "scale_align")
+    for key in ("max_hulls", "preprocess_resolution", "mcts_iterations", "mcts_max_depth",
+                "mcts_nodes"):  # fmt: skip
+        value = getattr(sa.convex, key)
+        _require(value >= 1, f"scale_align.convex.{key}", ">= 1", value)
     _validate_retarget(params.retarget)
     c = params.contact
+    _check_numbers(c, "contact")
+    _require(c.beta1 > 0, "contact.beta1", "> 0 (at 0 the contact probability is 0.5: never "
+             "likely)", c.beta1)  # fmt: skip
     _require(
         0 <= c.dis_min_m <= c.dis_max_m,
         "contact.dis_min_m/dis_max_m",
@@ -535,14 +601,18 @@ def validate(params: PipelineParams) -> PipelineParams:
     )
     _require(c.map_points >= 1, "contact.map_points", ">= 1", c.map_points)
     r = params.refine
+    _check_numbers(r, "refine")
     unknown = sorted(set(r.finger_order) - {"thumb", "index", "middle", "ring", "little"})
     _require(not unknown, "refine.finger_order", "finger names thumb..little", unknown)
+    _require(r.spen_points >= 1, "refine.spen_points", ">= 1", r.spen_points)
     for key in ("w_dis", "w_pen", "w_align", "w_spen", "w_joints", "w_smooth", "learning_rate",
                 "release_w_pen", "release_w_touch", "release_w_track", "release_w_smooth",
                 "release_w_smooth_joints", "release_iterations"):  # fmt: skip
         _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
+    _check_numbers(params.simulate, "simulate")
     _validate_simulate(params.simulate)
     m = params.metrics
+    _check_numbers(m, "metrics")
     for key in ("pd_violation_m", "spd_violation_m", "limit_tolerance_rad"):
         _require(getattr(m, key) >= 0, f"metrics.{key}", ">= 0", getattr(m, key))
     _require(m.kl_bins >= 2, "metrics.kl_bins", ">= 2", m.kl_bins)

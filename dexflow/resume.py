@@ -18,6 +18,19 @@ writes ``summary.json`` and removes the bookkeeping, so a completed output direc
 exactly the stage's outputs (what DVC hashes: no timestamps, no absolute paths) and a later run
 starts from scratch. Items that failed leave no record and are retried.
 
+Failures are of two kinds (:mod:`dexflow.parallel`). An item whose input is bad
+(:class:`~dexflow.errors.DexflowError`) is *dropped*: listed in ``summary.json`` with its reason,
+the others complete. An item that failed for another reason (a full disk, memory, a killed
+worker) makes :meth:`StageOutput.finish` raise :class:`IncompleteStageError` instead of writing
+the summary: the stage exits non-zero, DVC caches nothing, and the bookkeeping stays, so the next
+``dvc repro`` resumes and retries just those items.
+
+Every summary also accounts for the sequences dropped before the stage: ``finish`` adds
+``dropped`` (per sequence the first stage that dropped it and why, from the input stages'
+summaries and this one's), ``num_input_sequences`` (the sequences of the data root that reached
+the first stage) and ``num_dropped``, and ``warnings`` (per sequence, the ``warning`` of any
+stage's entry), so the last stage's summary lists every sequence the pipeline lost.
+
 Example (a stage runner)::
 
     stage = StageOutput(out_root, "contact", {"hand": params.hand, "contact": params.contact},
@@ -44,6 +57,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from dexflow.errors import IncompleteStageError
 from dexflow.io.atomic import atomic_path, save_json
 from dexflow.io.layout import StageDir
 from dexflow.parallel import ItemResult, map_items
@@ -51,7 +65,15 @@ from dexflow.parallel import ItemResult, map_items
 if TYPE_CHECKING:
     from dexflow.params import RunParams
 
-__all__ = ["DONE_DIR", "STAGE_FILE", "StageOutput", "Tally", "code_digest", "file_digest"]
+__all__ = [
+    "DONE_DIR",
+    "STAGE_FILE",
+    "IncompleteStageError",
+    "StageOutput",
+    "Tally",
+    "code_digest",
+    "file_digest",
+]
 
 STAGE_FILE = ".stage.json"
 DONE_DIR = ".done"
@@ -180,6 +202,7 @@ class StageOutput:
         self.input_dirs = [_stage_dir(p) for p in inputs]
         self.inputs = [d.root for d in self.input_dirs]
         self.params = _plain(dict(params))
+        self.retry: dict[str, str] = {}  # items that failed for a reason other than their input
 
     def fingerprint(self) -> dict:
         """What ``.stage.json`` holds: deterministic, no paths, no times."""
@@ -195,7 +218,8 @@ class StageOutput:
         holds an interrupted run with the same fingerprint.
 
         Raises:
-            FileNotFoundError: the first input holds no ``sequences/*.npz``.
+            NoSequencesError: the first input holds no ``sequences/*.npz`` (hidden files are
+                not sequences).
         """
         files = self.input_dirs[0].sequence_files()
         fingerprint = _dumps(self.fingerprint())
@@ -278,6 +302,9 @@ class StageOutput:
             desc or self.stage,
         )
         by_index = dict(zip(todo, computed, strict=True))
+        for result in computed:
+            if result.retry:
+                self.retry[name(result.item)] = result.error or "failed"
         return [
             ItemResult(item, value=done[key]) if key in done else by_index[i]
             for i, (item, key) in enumerate(zip(items, names, strict=True))
@@ -292,10 +319,59 @@ class StageOutput:
         return Tally({r.item.stem: r.entry() for r in results}, seconds)
 
     def finish(self, summary: dict) -> None:
-        """Write ``summary.json``, then drop the bookkeeping: the run is complete."""
+        """Add the dropped sequences to ``summary`` (in place), write ``summary.json``, then drop
+        the bookkeeping: the run is complete.
+
+        Raises:
+            IncompleteStageError: an item failed for a reason other than its input; nothing is
+                written and the bookkeeping stays, so that a rerun resumes.
+        """
+        if self.retry:
+            raise IncompleteStageError(self.stage, self.retry)
+        self._account(summary)
         save_json(self.out_root / "summary.json", summary)
         (self.out_root / STAGE_FILE).unlink(missing_ok=True)
         shutil.rmtree(self.out_root / DONE_DIR, ignore_errors=True)
+
+    def _account(self, summary: dict) -> None:
+        """``dropped``, ``num_input_sequences``, ``num_dropped`` and ``warnings`` of the
+        summary: this stage's failures and those its inputs' summaries record."""
+        own: dict[str, dict] = summary.get("sequences", {})
+        dropped: dict[str, dict] = {}
+        warnings: dict[str, list[str]] = {}
+        names = set(own)
+        for root in self.inputs:
+            before = _read_summary(root / "summary.json")
+            for name, info in before.get("dropped", {}).items():
+                dropped.setdefault(name, info)
+            for name, entry in before.get("sequences", {}).items():
+                if entry.get("status") != "ok":  # a summary written before ``dropped`` existed
+                    info = {"stage": before.get("stage", root.name), "error": entry.get("error")}
+                    dropped.setdefault(name, info)
+            for name, notes in before.get("warnings", {}).items():
+                warnings.setdefault(name, [])
+                warnings[name] += [n for n in notes if n not in warnings[name]]
+            names |= set(before.get("sequences", {})) | set(before.get("dropped", {}))
+        for name, entry in own.items():
+            if entry.get("status") != "ok":
+                dropped.setdefault(name, {"stage": self.stage, "error": entry.get("error")})
+            if entry.get("warning"):
+                note = f"{self.stage}: {entry['warning']}"
+                if note not in warnings.setdefault(name, []):
+                    warnings[name].append(note)
+        summary["num_input_sequences"] = len(names)
+        summary["num_dropped"] = len(dropped)
+        summary["dropped"] = dict(sorted(dropped.items()))
+        summary["warnings"] = dict(sorted(warnings.items()))
+
+
+def _read_summary(path: Path) -> dict:
+    """An input stage's ``summary.json`` (empty if it has none: a data root)."""
+    try:
+        summary = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return summary if isinstance(summary, dict) else {}
 
 
 def _stage_dir(path: StageDir | str | Path) -> StageDir:

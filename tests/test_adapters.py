@@ -12,9 +12,9 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from dexflow.data.adapters import HO3D_TO_DEXFLOW, ConvertOptions, DatasetLayoutError, convert
-from dexflow.data.mirror import MIRROR, unmirror_points, unmirror_transforms
 from dexflow.human.mano import FINGERTIP_VERTICES, MANO_TO_DEXFLOW, load_mano
 from dexflow.human.model import forward_keypoints
+from dexflow.io.mirror import MIRROR, unmirror_points, unmirror_transforms
 from dexflow.io.sequence import load_sequence
 
 T = 6

@@ -58,7 +58,6 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from dexflow.data.mirror import mirror_mesh, mirror_sequence
 from dexflow.errors import DexflowError, SequenceFormatError
 from dexflow.geometry import transform_points, world_to_object
 from dexflow.human.cleaning import detect_bad_frames
@@ -66,6 +65,7 @@ from dexflow.human.keypoints import FINGERTIPS
 from dexflow.human.mano import MANO_TO_DEXFLOW, ManoModel, load_mano
 from dexflow.io.atomic import save_json
 from dexflow.io.layout import StageDir
+from dexflow.io.mirror import mirror_mesh, mirror_sequence
 from dexflow.io.sequence import Sequence, save_sequence
 from dexflow.objects.mesh import load_mesh, write_obj
 from dexflow.objects.sdf import signed_distance

@@ -27,11 +27,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from dexflow.errors import ConfigError
+from dexflow.errors import ArtifactError, ConfigError
 
 __all__ = [
     "TRAJECTORIES",
     "Layout",
+    "NoSequencesError",
     "ObjectPaths",
     "StageDir",
     "project_root",
@@ -84,6 +85,14 @@ class ObjectPaths:
         return self.root / "meta.json"
 
 
+class NoSequencesError(ArtifactError, FileNotFoundError):
+    """A stage directory (or the data root) holds no ``sequences/*.npz``."""
+
+
+def _visible_npz(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.glob("*.npz") if not p.name.startswith("."))
+
+
 @dataclass(frozen=True)
 class StageDir:
     """One stage's output directory: ``sequences/<name>.npz`` and ``summary.json``."""
@@ -107,19 +116,24 @@ class StageDir:
         return self.sequences_dir / f"{base}.npz"
 
     def sequence_files(self) -> list[Path]:
-        """Every ``sequences/*.npz``, sorted by name (what a stage maps over).
+        """Every ``sequences/*.npz``, sorted by name (what a stage maps over). Hidden files are
+        not sequences: macOS's ``._<name>.npz`` resource forks, the ``.<name>.*.tmp.npz`` an
+        interrupted atomic write leaves.
 
         Raises:
-            FileNotFoundError: there is none.
+            NoSequencesError: there is none.
         """
-        files = sorted(self.sequences_dir.glob("*.npz"))
+        files = _visible_npz(self.sequences_dir)
         if not files:
-            raise FileNotFoundError(f"{self.sequences_dir}: no *.npz sequence files")
+            raise NoSequencesError(
+                f"{self.sequences_dir}: no *.npz sequence files (has the stage that writes them "
+                "run? is data.root the folder holding sequences/?)"
+            )
         return files
 
     def names(self) -> list[str]:
         """The sequence names present (empty if none)."""
-        return sorted(p.stem for p in self.sequences_dir.glob("*.npz"))
+        return [p.stem for p in _visible_npz(self.sequences_dir)]
 
     # Stage scale_align's directory also holds the objects.
     def object_key(self, obj_mesh: str) -> str:

@@ -5,11 +5,14 @@ Fields:
 - ``keypoints (T, 21, 3) float64``: human hand keypoints in metres, MANO joint order, world frame.
   Frames where the tracker lost the hand may hold NaN, but only where ``valid`` is False.
 - ``obj_pose (T, 4, 4) float64``: rigid transform from object-mesh coordinates to world.
-- ``obj_mesh``: path of the object mesh, relative to the data root.
+- ``obj_mesh``: path of the object mesh, relative to the data root and inside it (the data root
+  is what DVC tracks: a mesh read from elsewhere could change without any stage rerunning).
 - ``obj_name``, ``side`` ('right' | 'left'), ``fps`` (> 0), ``source`` (adapter name).
-- optional ``valid (T,) bool``, ``timestamps (T,) float64`` (seconds, strictly increasing),
-  ``gt_contact (T, 5) bool`` (ground-truth contact per finger, thumb to little), ``mirrored``,
-  and any further arrays (MANO parameters, stage outputs), kept as ``extras``.
+- optional ``valid (T,) bool``, ``timestamps (T,) float64`` (seconds, strictly increasing, one
+  step of ``1/fps`` each: every stage takes time from ``fps``, so a capture with gaps must hold
+  its missing frames as invalid ones), ``gt_contact (T, 5) bool`` (ground-truth contact per
+  finger, thumb to little), ``mirrored``, and any further arrays (MANO parameters, stage
+  outputs), kept as ``extras``.
 """
 
 from __future__ import annotations
@@ -26,8 +29,11 @@ from dexflow.io.atomic import save_npz
 
 __all__ = [
     "HAND_SIZE_RANGE_M",
+    "NEAR_OBJECT_M",
+    "TIMESTAMP_JITTER",
     "Sequence",
     "load_sequence",
+    "mesh_file",
     "save_sequence",
     "validate_sequence",
 ]
@@ -35,7 +41,17 @@ __all__ = [
 # Wrist to middle-finger MCP, metres. Adults measure about 0.08-0.11 m; the range is wide so
 # that children and hands already scaled to a robot's size (x1.7 for Allegro) pass.
 HAND_SIZE_RANGE_M = (0.03, 0.25)
+# A sequence whose nearest fingertip never comes closer to the object's surface than this is
+# suspect (warned about, not refused): the object pose and the keypoints are probably not in
+# one world frame or unit.
+NEAR_OBJECT_M = 0.03
 _RIGID_TOL = 1e-4
+# Timestamps: each step may differ from 1/fps by this share of it (camera jitter); a larger
+# step is a gap (a dropped frame is a step of 2/fps). Their median must match fps within 2 %.
+TIMESTAMP_JITTER = 0.5
+_RATE_TOL = 0.02
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
+_NPY_MAGIC = b"\x93NUMPY"
 _STRING_FIELDS = ("obj_mesh", "obj_name", "side", "source")
 _KNOWN_FIELDS = (
     "keypoints",
@@ -65,7 +81,7 @@ class Sequence:
         timestamps: (T,) seconds, if the capture was not sampled at a constant rate.
         gt_contact: (T, 5) ground-truth contact per finger (thumb..little), if known.
         mirrored: True if a left hand was mirrored to a right one (x -> -x in the world,
-            :mod:`dexflow.data.mirror`).
+            :mod:`dexflow.io.mirror`).
         extras: Any further named arrays, saved and loaded unchanged.
     """
 
@@ -134,6 +150,75 @@ def _first_bad_frame(bad: np.ndarray) -> int:
     return int(np.flatnonzero(bad.reshape(bad.shape[0], -1).any(axis=1))[0])
 
 
+def _check_timestamps(path: Path | None, ts: np.ndarray, fps: float, num_frames: int) -> None:
+    _check_shape(path, "timestamps", ts, (num_frames,))
+    steps = np.diff(ts)
+    step_bad = ~(steps > 0)
+    if step_bad.any():
+        frame = int(np.flatnonzero(step_bad)[0]) + 1
+        _fail(
+            path,
+            "timestamps",
+            "strictly increasing seconds",
+            f"{ts[frame]!r} after {ts[frame - 1]!r}",
+            frame,
+        )
+    median = float(np.median(steps))
+    if abs(median * fps - 1.0) > _RATE_TOL:
+        _fail(
+            path,
+            "timestamps",
+            f"steps of 1/fps = {1 / fps:.4g} s (fps {fps:g})",
+            f"a median step of {median:.4g} s, i.e. {1 / median:.4g} fps: set fps to the "
+            "capture's rate",
+        )
+    gaps = np.flatnonzero(np.abs(steps * fps - 1.0) > TIMESTAMP_JITTER)
+    if len(gaps):
+        frame = int(gaps[0]) + 1
+        _fail(
+            path,
+            "timestamps",
+            f"a uniform step of 1/fps = {1 / fps:.4g} s (within {TIMESTAMP_JITTER:.0%}), as every "
+            "stage takes time from fps: hold each missing frame as an invalid one (NaN "
+            "keypoints, valid = False), or let `dexflow convert generic` do it from the "
+            "timestamps",
+            f"a step of {steps[gaps[0]]:.4g} s ({steps[gaps[0]] * fps:.3g} frames) "
+            f"({len(gaps)} such step(s))",
+            frame,
+        )
+
+
+def mesh_file(
+    obj_mesh: str, data_root: str | Path | None = None, path: str | Path | None = None
+) -> Path:
+    """The file an ``obj_mesh`` names: relative to the data root and inside it.
+
+    Args:
+        obj_mesh: The sequence's ``obj_mesh``.
+        data_root: The data root; None checks only the form of the path.
+        path: The sequence file (named in errors).
+
+    Returns:
+        ``data_root / obj_mesh`` (``obj_mesh`` itself without a data root).
+
+    Raises:
+        SequenceFormatError: the path is empty, absolute or climbs out with ``..``. (A link
+            inside the data root is followed: linking a mesh folder in is the user's choice.)
+    """
+    path = None if path is None else Path(path)
+    expected = "a mesh path relative to the data root, inside it (only the data root is tracked)"
+    if not obj_mesh:
+        _fail(path, "obj_mesh", expected, "an empty string")
+    rel = Path(obj_mesh)
+    if rel.is_absolute() or rel.anchor:
+        _fail(path, "obj_mesh", expected, f"the absolute path '{obj_mesh}': copy the mesh into "
+              "the data root and name it relative to it")  # fmt: skip
+    if ".." in rel.parts:
+        _fail(path, "obj_mesh", expected, f"'{obj_mesh}', which climbs out of the data root: "
+              "copy the mesh into it")  # fmt: skip
+    return rel if data_root is None else Path(data_root) / rel
+
+
 def validate_sequence(
     seq: Sequence, path: str | Path | None = None, data_root: str | Path | None = None
 ) -> Sequence:
@@ -184,18 +269,7 @@ def validate_sequence(
     if not np.isfinite(fps) or fps <= 0:
         _fail(path, "fps", "a finite number > 0", repr(fps))
     if seq.timestamps is not None:
-        ts = np.asarray(seq.timestamps, dtype=np.float64)
-        _check_shape(path, "timestamps", ts, (num_frames,))
-        step_bad = ~(np.diff(ts) > 0)
-        if step_bad.any():
-            frame = int(np.flatnonzero(step_bad)[0]) + 1
-            _fail(
-                path,
-                "timestamps",
-                "strictly increasing seconds",
-                f"{ts[frame]!r} after {ts[frame - 1]!r}",
-                frame,
-            )
+        _check_timestamps(path, np.asarray(seq.timestamps, dtype=np.float64), fps, num_frames)
 
     if seq.side not in ("right", "left"):
         _fail(path, "side", "'right' or 'left'", repr(seq.side))
@@ -248,17 +322,14 @@ def validate_sequence(
         if gt.dtype != bool:
             _fail(path, "gt_contact", "a bool array", f"dtype {gt.dtype}")
 
-    if not seq.obj_mesh:
-        _fail(path, "obj_mesh", "a mesh path relative to the data root", "an empty string")
-    if data_root is not None:
-        mesh_path = Path(data_root) / seq.obj_mesh
-        if not mesh_path.is_file():
-            _fail(
-                path,
-                "obj_mesh",
-                f"an existing mesh file below {data_root}",
-                f"'{seq.obj_mesh}' (no file at {mesh_path})",
-            )
+    mesh_path = mesh_file(seq.obj_mesh, data_root, path)
+    if data_root is not None and not mesh_path.is_file():
+        _fail(
+            path,
+            "obj_mesh",
+            f"an existing mesh file below {data_root}",
+            f"'{seq.obj_mesh}' (no file at {mesh_path})",
+        )
     return seq
 
 
@@ -281,11 +352,32 @@ def load_sequence(path: str | Path, data_root: str | Path | None = None) -> Sequ
     path = Path(path)
     if not path.is_file():
         raise SequenceFormatError(path, "<file>", "an existing .npz file", "no such file")
+    with open(path, "rb") as handle:  # an OSError here is the machine's, not the file's
+        head = handle.read(len(_NPY_MAGIC))
+    if not head.startswith(_ZIP_MAGIC):
+        found = (
+            "an empty file" if not head
+            else "a single .npy array (np.save); save the fields with np.savez"
+            if head.startswith(_NPY_MAGIC)
+            else f"a file that is not a zip archive (it starts with {head[:4]!r})"
+        )  # fmt: skip
+        raise SequenceFormatError(path, "<file>", "a readable .npz archive (np.savez)", found)
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: data[key] for key in data.files}
-    except Exception as exc:  # zipfile, pickle and OS errors all mean the same to a user
-        raise SequenceFormatError(path, "<file>", "a readable .npz archive", repr(exc)) from exc
+    except OSError:
+        raise
+    except ValueError as exc:
+        if "pickle" not in str(exc):
+            raise SequenceFormatError(path, "<file>", "a readable .npz archive", repr(exc)) from exc
+        raise SequenceFormatError(
+            path, "<file>", "numeric and string arrays only", "an array of Python objects "
+            "(pickled; save strings as np.array('text'), not dtype=object)",
+        ) from exc  # fmt: skip
+    except Exception as exc:  # zipfile, zlib, header errors: the archive is damaged
+        raise SequenceFormatError(
+            path, "<file>", "a readable .npz archive", f"a damaged one ({exc!r})"
+        ) from exc
     for key in ("keypoints", "obj_pose", "obj_mesh", "obj_name", "fps"):
         if key not in arrays:
             raise SequenceFormatError(path, key, "a required field", f"fields {sorted(arrays)}")
