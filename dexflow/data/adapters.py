@@ -20,6 +20,10 @@ then cleans the same way (:func:`write_sequence`):
   fingertip to the object surface, whose median should be a few millimetres for grasping data
   (tens of millimetres mean the object pose and the keypoints are not in the same frame).
 
+Each source sequence is read on its own: a file that cannot be read (a corrupt pickle, a frame
+file with an unexpected name, a text cell in a CSV) fails that sequence only, with the source
+file named in its error, and the others are converted; ``convert.json`` is always written.
+
 Layouts (only the files dexflow reads are listed):
 
 - **DexYCB**: ``<subject>/<sequence>/meta.yml`` (``serials``, ``ycb_ids``, ``ycb_grasp_ind``,
@@ -39,14 +43,18 @@ Layouts (only the files dexflow reads are listed):
   ``params: {global_orient (T, 3), hand_pose (T, 45 or PCA), transl (T, 3)}`` and ``betas``.
 - **generic**: ``<name>.npz`` with ``keypoints (T, 21, 3)``, ``obj_pose (T, 4, 4)`` or
   ``obj_rotvec`` + ``obj_trans (T, 3)``, ``obj_mesh`` (relative to SRC), and optional ``fps``,
-  ``side``, ``valid``, ``units`` (m | cm | mm), ``keypoint_order`` (mano | ho3d); or
-  ``<name>.csv`` with columns ``kp<i>_x, kp<i>_y, kp<i>_z`` (i = 0..20),
-  ``obj_rx, obj_ry, obj_rz`` (axis-angle), ``obj_tx, obj_ty, obj_tz`` (empty cells = no hand)
-  and a sidecar ``<name>.json`` with ``obj_mesh``, ``fps`` and the optional fields above.
+  ``side``, ``valid``, ``units`` (m | cm | mm), ``keypoint_order`` (mano | ho3d),
+  ``timestamps`` (seconds); or ``<name>.csv`` with columns ``kp<i>_x, kp<i>_y, kp<i>_z``
+  (i = 0..20), ``obj_rx, obj_ry, obj_rz`` (axis-angle), ``obj_tx, obj_ty, obj_tz`` (empty cells
+  = no hand), optionally ``timestamps``, and a sidecar ``<name>.json`` with ``obj_mesh``, ``fps``
+  and the optional fields above. With timestamps, frames are placed on the uniform ``1/fps``
+  grid (``fps`` from the timestamps' median step if not given) and the gaps filled with frames
+  without a hand: dexflow's stages take time from ``fps``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import pickle
@@ -58,7 +66,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from dexflow.errors import DexflowError, SequenceFormatError
+from dexflow.errors import DexflowError
 from dexflow.geometry import transform_points, world_to_object
 from dexflow.human.cleaning import detect_bad_frames
 from dexflow.human.keypoints import FINGERTIPS
@@ -70,7 +78,15 @@ from dexflow.io.sequence import Sequence, save_sequence
 from dexflow.objects.mesh import load_mesh, write_obj
 from dexflow.objects.sdf import signed_distance
 
-__all__ = ["ADAPTERS", "ConvertOptions", "DatasetLayoutError", "RawSequence", "convert"]
+__all__ = [
+    "ADAPTERS",
+    "ConvertOptions",
+    "DatasetLayoutError",
+    "MissingOptionError",
+    "RawSequence",
+    "SourceSequence",
+    "convert",
+]
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +104,11 @@ _UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 
 class DatasetLayoutError(DexflowError, ValueError):
     """A source dataset misses a file or a field the adapter needs (the message names it)."""
+
+
+class MissingOptionError(DatasetLayoutError):
+    """The data needs an option of ``dexflow convert`` that was not given (``--mano``): the
+    conversion stops, as no sequence that needs it can be converted."""
 
 
 @dataclass
@@ -134,10 +155,53 @@ class RawSequence:
     template: np.ndarray | None = None
 
 
+@dataclass
+class SourceSequence:
+    """One source sequence (or one file holding several, GRAB's hands), read on its own.
+
+    Attributes:
+        name: Its name in the report if it cannot be read.
+        path: The file or folder it is read from (named in errors).
+        read: Reads it; raises :class:`DatasetLayoutError` naming the file that is wrong.
+    """
+
+    name: str
+    path: Path
+    read: Callable[[], list[RawSequence]]
+
+
 def _need(path: Path, what: str) -> Path:
     if not path.exists():
         raise DatasetLayoutError(f"{path}: missing {what}")
     return path
+
+
+@contextlib.contextmanager
+def _reading(path: Path) -> Iterator[None]:
+    """Name ``path`` in any error reading it raises (a corrupt pickle, an unreadable archive)."""
+    try:
+        yield
+    except DexflowError:
+        raise
+    except Exception as exc:
+        raise DatasetLayoutError(f"{path}: cannot read it ({type(exc).__name__}: {exc})") from exc
+
+
+def _frame_number(path: Path, pattern: str) -> int:
+    """The frame number of a per-frame file named like ``pattern`` (``<n>`` for the number)."""
+    prefix, _, suffix = pattern.partition("<n>")
+    text = path.name.removeprefix(prefix).removesuffix(suffix)
+    if not path.name.startswith(prefix) or not path.name.endswith(suffix) or not text.isdigit():
+        raise DatasetLayoutError(
+            f"{path}: unexpected file name; frame files are named {pattern} (<n>: the frame "
+            "number); move other files out of the folder"
+        )
+    return int(text)
+
+
+def _visible(paths) -> list[Path]:
+    """Without hidden files (macOS's ``._*`` resource forks, editors' swap files)."""
+    return sorted(p for p in paths if not p.name.startswith("."))
 
 
 def _field(data, key: str, where: Path | str):
@@ -165,7 +229,7 @@ def _pose(rot, trans) -> np.ndarray:
 
 def _mano_for(options: ConvertOptions, side: str) -> ManoModel:
     if not options.mano:
-        raise DatasetLayoutError(
+        raise MissingOptionError(
             "joints are missing and only MANO parameters exist: pass "
             "--mano <your MANO_RIGHT.pkl / MANO_LEFT.pkl or their folder>"
         )
@@ -181,68 +245,78 @@ def _mano_for(options: ConvertOptions, side: str) -> ManoModel:
 def _read_yaml(path: Path):
     import yaml
 
-    with open(_need(path, "file")) as handle:
+    with open(_need(path, "file")) as handle, _reading(path):
         return yaml.safe_load(handle)
 
 
-def _dexycb(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
+def _dexycb(src: Path, options: ConvertOptions) -> Iterator[SourceSequence]:
     metas = sorted(src.glob("*/*/meta.yml"))
     if not metas:
         raise DatasetLayoutError(f"{src}: no <subject>/<sequence>/meta.yml (DexYCB layout)")
     models = Path(options.models) if options.models else src / "models"
     for meta_path in metas:
-        meta = _read_yaml(meta_path)
         seq_dir = meta_path.parent
-        serials = [str(s) for s in _field(meta, "serials", meta_path)]
-        serial = options.camera or serials[0]
-        ycb_ids = _field(meta, "ycb_ids", meta_path)
-        grasp = int(_field(meta, "ycb_grasp_ind", meta_path))
-        side = str(_field(meta, "mano_sides", meta_path)[0])
-        calib = (
-            src
-            / "calibration"
-            / f"extrinsics_{_field(meta, 'extrinsics', meta_path)}"
-            / "extrinsics.yml"
-        )
-        extr = _field(_read_yaml(calib), "extrinsics", calib)
-        cam_to_world = np.eye(4)
-        cam_to_world[:3] = np.asarray(_field(extr, serial, calib), dtype=np.float64).reshape(3, 4)
-        labels = sorted(
-            _need(seq_dir / serial, f"camera folder of serial {serial}").glob("labels_*.npz")
-        )
-        if not labels:
-            raise DatasetLayoutError(f"{seq_dir / serial}: no labels_*.npz files")
-        frames = [int(p.stem.split("_")[1]) for p in labels]
-        n_frames = max(frames) + 1
-        kp = np.full((n_frames, 21, 3), np.nan)
-        pose = np.full((n_frames, 4, 4), np.nan)
-        template = np.zeros(n_frames, dtype=bool)
-        for frame, path in zip(frames, labels, strict=True):
-            with np.load(path) as data:
-                joints = np.asarray(_field(data, "joint_3d", path), dtype=np.float64).reshape(21, 3)
-                objects = np.asarray(_field(data, "pose_y", path), dtype=np.float64)
-                mano = np.asarray(data["pose_m"]) if "pose_m" in data.files else None
-            if np.all(joints == -1):
-                pass  # DexYCB's "no hand in this frame"
-            elif mano is not None and not mano.any():
-                template[frame] = True
-            else:
-                kp[frame] = transform_points(cam_to_world, joints)
-            if len(objects) > grasp and np.isfinite(objects[grasp]).all() and objects[grasp].any():
-                pose[frame] = cam_to_world @ np.vstack([objects[grasp], [0, 0, 0, 1]])
-        name = YCB_CLASSES[int(ycb_ids[grasp]) - 1]
-        mesh = models / name / "textured_simple.obj"
-        yield RawSequence(
+        yield SourceSequence(
             f"{seq_dir.parent.name}_{seq_dir.name}",
-            kp,
-            pose,
-            mesh,
-            name,
-            options.fps or 30.0,
-            side,
-            "dexycb",
-            template,
+            seq_dir,
+            lambda meta_path=meta_path: [_read_dexycb(src, meta_path, models, options)],
         )
+
+
+def _read_dexycb(src: Path, meta_path: Path, models: Path, options: ConvertOptions) -> RawSequence:
+    """One DexYCB sequence."""
+    meta = _read_yaml(meta_path)
+    seq_dir = meta_path.parent
+    serials = [str(s) for s in _field(meta, "serials", meta_path)]
+    serial = options.camera or serials[0]
+    ycb_ids = _field(meta, "ycb_ids", meta_path)
+    grasp = int(_field(meta, "ycb_grasp_ind", meta_path))
+    side = str(_field(meta, "mano_sides", meta_path)[0])
+    calib = (
+        src
+        / "calibration"
+        / f"extrinsics_{_field(meta, 'extrinsics', meta_path)}"
+        / "extrinsics.yml"
+    )
+    extr = _field(_read_yaml(calib), "extrinsics", calib)
+    cam_to_world = np.eye(4)
+    cam_to_world[:3] = np.asarray(_field(extr, serial, calib), dtype=np.float64).reshape(3, 4)
+    labels = _visible(
+        _need(seq_dir / serial, f"camera folder of serial {serial}").glob("labels_*.npz")
+    )
+    if not labels:
+        raise DatasetLayoutError(f"{seq_dir / serial}: no labels_*.npz files")
+    frames = [_frame_number(p, "labels_<n>.npz") for p in labels]
+    n_frames = max(frames) + 1
+    kp = np.full((n_frames, 21, 3), np.nan)
+    pose = np.full((n_frames, 4, 4), np.nan)
+    template = np.zeros(n_frames, dtype=bool)
+    for frame, path in zip(frames, labels, strict=True):
+        with _reading(path), np.load(path) as data:
+            joints = np.asarray(_field(data, "joint_3d", path), dtype=np.float64).reshape(21, 3)
+            objects = np.asarray(_field(data, "pose_y", path), dtype=np.float64)
+            mano = np.asarray(data["pose_m"]) if "pose_m" in data.files else None
+        if np.all(joints == -1):
+            pass  # DexYCB's "no hand in this frame"
+        elif mano is not None and not mano.any():
+            template[frame] = True
+        else:
+            kp[frame] = transform_points(cam_to_world, joints)
+        if len(objects) > grasp and np.isfinite(objects[grasp]).all() and objects[grasp].any():
+            pose[frame] = cam_to_world @ np.vstack([objects[grasp], [0, 0, 0, 1]])
+    name = YCB_CLASSES[int(ycb_ids[grasp]) - 1]
+    mesh = models / name / "textured_simple.obj"
+    return RawSequence(
+        f"{seq_dir.parent.name}_{seq_dir.name}",
+        kp,
+        pose,
+        mesh,
+        name,
+        options.fps or 30.0,
+        side,
+        "dexycb",
+        template,
+    )
 
 
 # -------------------------------------------------------------------------------------- HO-3D
@@ -259,7 +333,7 @@ def _is_mano_template(meta: dict) -> bool:
     )
 
 
-def _ho3d(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
+def _ho3d(src: Path, options: ConvertOptions) -> Iterator[SourceSequence]:
     seq_dirs = sorted(p.parent for p in [*src.glob("*/meta"), *src.glob("*/*/meta")] if p.is_dir())
     if not seq_dirs:
         raise DatasetLayoutError(
@@ -267,18 +341,30 @@ def _ho3d(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
         )
     models = Path(options.models) if options.models else src / "models"
     for seq_dir in seq_dirs:
-        files = sorted((seq_dir / "meta").glob("*.pkl"))
-        if not files:
-            raise DatasetLayoutError(f"{seq_dir / 'meta'}: no <frame>.pkl files")
-        frames = [int(p.stem) for p in files]
-        first, n_frames = min(frames), max(frames) - min(frames) + 1
-        kp = np.full((n_frames, 21, 3), np.nan)
-        pose = np.full((n_frames, 4, 4), np.nan)
-        template = np.zeros(n_frames, dtype=bool)
-        names, side, mano_frames = set(), "right", {}
-        for frame, path in zip(frames, files, strict=True):
+        yield SourceSequence(
+            f"{seq_dir.parent.name}_{seq_dir.name}",
+            seq_dir / "meta",
+            lambda seq_dir=seq_dir: [_read_ho3d(seq_dir, models, options)],
+        )
+
+
+def _read_ho3d(seq_dir: Path, models: Path, options: ConvertOptions) -> RawSequence:
+    """One HO-3D sequence."""
+    files = _visible((seq_dir / "meta").glob("*.pkl"))
+    if not files:
+        raise DatasetLayoutError(f"{seq_dir / 'meta'}: no <frame>.pkl files")
+    frames = [_frame_number(p, "<n>.pkl") for p in files]
+    first, n_frames = min(frames), max(frames) - min(frames) + 1
+    kp = np.full((n_frames, 21, 3), np.nan)
+    pose = np.full((n_frames, 4, 4), np.nan)
+    template = np.zeros(n_frames, dtype=bool)
+    names, side, mano_frames = set(), "right", {}
+    for frame, path in zip(frames, files, strict=True):
+        with _reading(path):  # a frame file that is not what HO-3D writes is named
             with open(path, "rb") as handle:
                 meta = pickle.load(handle, encoding="latin1")
+            if not isinstance(meta, dict):
+                raise DatasetLayoutError(f"{path}: expected a dict, found {type(meta).__name__}")
             t = frame - first
             side = str(meta.get("side", side))
             joints = meta.get("handJoints3D")
@@ -293,143 +379,216 @@ def _ho3d(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
                 pose[t] = _pose(rot, trans)
             if meta.get("objName") is not None:
                 names.add(str(meta["objName"]))
-        if mano_frames:
-            model = _mano_for(options, side)
-            ts = sorted(mano_frames)
-            hand_pose = np.stack(
-                [np.asarray(mano_frames[t]["handPose"], dtype=np.float64) for t in ts]
-            )
-            betas = np.asarray(mano_frames[ts[0]].get("handBeta", np.zeros(10)), dtype=np.float64)
-            trans = np.stack([np.asarray(mano_frames[t].get("handTrans", np.zeros(3))) for t in ts])
-            kp[ts] = model.joints(hand_pose[:, :3], hand_pose[:, 3:], betas, trans)
-        if len(names) != 1:
-            raise DatasetLayoutError(
-                f"{seq_dir}: expected one 'objName' in the frames, found {sorted(names)}"
-            )
-        name = names.pop()
-        yield RawSequence(
-            f"{seq_dir.parent.name}_{seq_dir.name}",
-            kp,
-            pose,
-            models / name / "textured_simple.obj",
-            name,
-            options.fps or 30.0,
-            side,
-            "ho3d",
-            template,
+    if mano_frames:
+        model = _mano_for(options, side)
+        ts = sorted(mano_frames)
+        hand_pose = np.stack([np.asarray(mano_frames[t]["handPose"], dtype=np.float64) for t in ts])
+        betas = np.asarray(mano_frames[ts[0]].get("handBeta", np.zeros(10)), dtype=np.float64)
+        trans = np.stack([np.asarray(mano_frames[t].get("handTrans", np.zeros(3))) for t in ts])
+        kp[ts] = model.joints(hand_pose[:, :3], hand_pose[:, 3:], betas, trans)
+    if len(names) != 1:
+        raise DatasetLayoutError(
+            f"{seq_dir}: expected one 'objName' in the frames, found {sorted(names)}"
         )
+    name = names.pop()
+    return RawSequence(
+        f"{seq_dir.parent.name}_{seq_dir.name}",
+        kp,
+        pose,
+        models / name / "textured_simple.obj",
+        name,
+        options.fps or 30.0,
+        side,
+        "ho3d",
+        template,
+    )
 
 
 # --------------------------------------------------------------------------------------- GRAB
 
 
-def _grab(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
-    files = sorted(src.rglob("*.npz"))
+def _grab(src: Path, options: ConvertOptions) -> Iterator[SourceSequence]:
+    files = _visible(src.rglob("*.npz"))
     if not files:
         raise DatasetLayoutError(f"{src}: no *.npz GRAB sequences")
-    sides = ("right", "left") if options.side == "both" else (options.side,)
     for path in files:
-        with np.load(path, allow_pickle=True) as data:
-            raw = {
-                k: data[k].item() if data[k].dtype == object and data[k].shape == () else data[k]
-                for k in data.files
-            }
-        fps = float(_field(raw, "framerate", path))
-        obj = _field(raw, "object", path)
-        params = _field(obj, "params", f"{path}: object")
-        transl = np.asarray(_field(params, "transl", f"{path}: object.params"), dtype=np.float64)
-        orient = np.asarray(
-            _field(params, "global_orient", f"{path}: object.params"), dtype=np.float64
+        yield SourceSequence(
+            f"{path.parent.name}_{path.stem}",
+            path,
+            lambda path=path: _read_grab(src, path, options),
         )
-        pose = RigidTransform.from_components(transl, Rotation.from_rotvec(orient)).as_matrix()
-        mesh = src / str(_field(obj, "object_mesh", f"{path}: object"))
-        for side in sides:
-            hand = _field(raw, "rhand" if side == "right" else "lhand", path)
-            if "joints" in hand:
-                kp = np.asarray(hand["joints"], dtype=np.float64)
-            else:
-                hp = _field(hand, "params", f"{path}: {side} hand")
-                model = _mano_for(options, side)
-                kp = model.joints(
-                    _field(hp, "global_orient", path),
-                    _field(hp, "hand_pose", path),
-                    hand.get("betas"),
-                    _field(hp, "transl", path),
-                )
-            name = f"{path.parent.name}_{path.stem}" + ("" if len(sides) == 1 else f"_{side}")
-            yield RawSequence(name, kp, pose, mesh, mesh.stem, fps, side, "grab")
+
+
+def _read_grab(src: Path, path: Path, options: ConvertOptions) -> list[RawSequence]:
+    """One GRAB file: a sequence per hand side asked for."""
+    sides = ("right", "left") if options.side == "both" else (options.side,)
+    out = []
+    with _reading(path), np.load(path, allow_pickle=True) as data:
+        raw = {
+            k: data[k].item() if data[k].dtype == object and data[k].shape == () else data[k]
+            for k in data.files
+        }
+    fps = float(_field(raw, "framerate", path))
+    obj = _field(raw, "object", path)
+    params = _field(obj, "params", f"{path}: object")
+    transl = np.asarray(_field(params, "transl", f"{path}: object.params"), dtype=np.float64)
+    orient = np.asarray(_field(params, "global_orient", f"{path}: object.params"), dtype=np.float64)
+    pose = RigidTransform.from_components(transl, Rotation.from_rotvec(orient)).as_matrix()
+    mesh = src / str(_field(obj, "object_mesh", f"{path}: object"))
+    for side in sides:
+        hand = _field(raw, "rhand" if side == "right" else "lhand", path)
+        if "joints" in hand:
+            kp = np.asarray(hand["joints"], dtype=np.float64)
+        else:
+            hp = _field(hand, "params", f"{path}: {side} hand")
+            model = _mano_for(options, side)
+            kp = model.joints(
+                _field(hp, "global_orient", path),
+                _field(hp, "hand_pose", path),
+                hand.get("betas"),
+                _field(hp, "transl", path),
+            )
+        name = f"{path.parent.name}_{path.stem}" + ("" if len(sides) == 1 else f"_{side}")
+        out.append(RawSequence(name, kp, pose, mesh, mesh.stem, fps, side, "grab"))
+    return out
 
 
 # ------------------------------------------------------------------------------------ generic
 
 
-def _generic(src: Path, options: ConvertOptions) -> Iterator[RawSequence]:
-    files = sorted([*src.glob("*.npz"), *src.glob("*.csv")])
+def _generic(src: Path, options: ConvertOptions) -> Iterator[SourceSequence]:
+    files = _visible([*src.glob("*.npz"), *src.glob("*.csv")])
     if not files:
         raise DatasetLayoutError(f"{src}: no <name>.npz or <name>.csv sequences (generic layout)")
     for path in files:
-        if path.suffix == ".npz":
-            with np.load(path, allow_pickle=False) as data:
-                fields = {k: data[k] for k in data.files}
-            kp = np.asarray(_field(fields, "keypoints", path), dtype=np.float64)
-        else:
-            fields = json.loads(
-                _need(path.with_suffix(".json"), "sidecar .json (obj_mesh, fps)").read_text()
-            )
-            import pandas as pd
+        yield SourceSequence(path.stem, path, lambda path=path: [_read_generic(src, path, options)])
 
-            table = pd.read_csv(path)
-            cols = [f"kp{i}_{c}" for i in range(21) for c in "xyz"]
-            missing = [
-                c
-                for c in [*cols, "obj_rx", "obj_ry", "obj_rz", "obj_tx", "obj_ty", "obj_tz"]
-                if c not in table
-            ]
-            if missing:
-                raise DatasetLayoutError(
-                    f"{path}: missing columns {missing[:6]}{'...' if len(missing) > 6 else ''}"
-                )
-            kp = table[cols].to_numpy(dtype=np.float64).reshape(-1, 21, 3)
-            fields["obj_rotvec"] = table[["obj_rx", "obj_ry", "obj_rz"]].to_numpy(dtype=np.float64)
-            fields["obj_trans"] = table[["obj_tx", "obj_ty", "obj_tz"]].to_numpy(dtype=np.float64)
-        units = str(fields.get("units", "m"))
-        if units not in _UNITS:
-            raise DatasetLayoutError(f"{path}: units '{units}'; expected one of {list(_UNITS)}")
-        scale = _UNITS[units]
-        order = str(fields.get("keypoint_order", "mano"))
-        if order not in ("mano", "ho3d"):
-            raise DatasetLayoutError(f"{path}: keypoint_order '{order}'; expected 'mano' or 'ho3d'")
-        if order == "ho3d":
-            kp = kp[:, list(HO3D_TO_DEXFLOW)]
-        if "obj_pose" in fields:
-            pose = np.asarray(fields["obj_pose"], dtype=np.float64).copy()
-        else:
-            rotvec = np.asarray(_field(fields, "obj_rotvec", path), dtype=np.float64)
-            trans = np.asarray(_field(fields, "obj_trans", path), dtype=np.float64)
-            good = np.isfinite(rotvec).all(axis=1) & np.isfinite(trans).all(axis=1)
-            pose = np.full((len(rotvec), 4, 4), np.nan)
-            rotation = Rotation.from_rotvec(rotvec[good])
-            pose[good] = RigidTransform.from_components(trans[good], rotation).as_matrix()
-        pose[:, :3, 3] *= scale
-        if "valid" in fields:
-            kp[~np.asarray(fields["valid"], dtype=bool)] = np.nan
-        fps = float(fields.get("fps", options.fps or 0.0))
-        if fps <= 0:
-            raise DatasetLayoutError(f"{path}: no 'fps' in the file and no --fps given")
-        mesh = src / str(_field(fields, "obj_mesh", path))
-        yield RawSequence(
-            path.stem,
-            kp * scale,
-            pose,
-            mesh,
-            mesh.stem,
-            fps,
-            str(fields.get("side", "right")),
-            "generic",
+
+def _numbers(path: Path, table, columns: list[str]) -> np.ndarray:
+    """The CSV ``columns`` as floats (empty cells NaN); a cell that is not a number is named."""
+    import pandas as pd
+
+    values = table[columns].apply(pd.to_numeric, errors="coerce")
+    bad = (values.isna() & table[columns].notna()).to_numpy()
+    if bad.any():
+        row, col = (int(i[0]) for i in np.nonzero(bad))
+        raise DatasetLayoutError(
+            f"{path}: column '{columns[col]}', row {row + 2}: {table[columns[col]].iloc[row]!r} "
+            "is not a number (leave the cell empty where there is no hand)"
         )
+    return values.to_numpy(dtype=np.float64)
 
 
-ADAPTERS: dict[str, Callable[[Path, ConvertOptions], Iterator[RawSequence]]] = {
+def _read_generic(src: Path, path: Path, options: ConvertOptions) -> RawSequence:
+    """One generic sequence (``<name>.npz``, or ``<name>.csv`` and ``<name>.json``)."""
+    if path.suffix == ".npz":
+        with _reading(path), np.load(path, allow_pickle=False) as data:
+            fields = {k: data[k] for k in data.files}
+        kp = np.asarray(_field(fields, "keypoints", path), dtype=np.float64)
+    else:
+        sidecar = _need(path.with_suffix(".json"), "sidecar .json (obj_mesh, fps)")
+        with _reading(sidecar):
+            fields = json.loads(sidecar.read_text())
+        import pandas as pd
+
+        with _reading(path):
+            table = pd.read_csv(path)
+        cols = [f"kp{i}_{c}" for i in range(21) for c in "xyz"]
+        missing = [
+            c
+            for c in [*cols, "obj_rx", "obj_ry", "obj_rz", "obj_tx", "obj_ty", "obj_tz"]
+            if c not in table
+        ]
+        if missing:
+            raise DatasetLayoutError(
+                f"{path}: missing columns {missing[:6]}{'...' if len(missing) > 6 else ''}"
+            )
+        kp = _numbers(path, table, cols).reshape(-1, 21, 3)
+        fields["obj_rotvec"] = _numbers(path, table, ["obj_rx", "obj_ry", "obj_rz"])
+        fields["obj_trans"] = _numbers(path, table, ["obj_tx", "obj_ty", "obj_tz"])
+        if "timestamps" in table:
+            fields["timestamps"] = _numbers(path, table, ["timestamps"])[:, 0]
+    units = str(fields.get("units", "m"))
+    if units not in _UNITS:
+        raise DatasetLayoutError(f"{path}: units '{units}'; expected one of {list(_UNITS)}")
+    scale = _UNITS[units]
+    order = str(fields.get("keypoint_order", "mano"))
+    if order not in ("mano", "ho3d"):
+        raise DatasetLayoutError(f"{path}: keypoint_order '{order}'; expected 'mano' or 'ho3d'")
+    if order == "ho3d":
+        kp = kp[:, list(HO3D_TO_DEXFLOW)]
+    if "obj_pose" in fields:
+        pose = np.asarray(fields["obj_pose"], dtype=np.float64).copy()
+    else:
+        rotvec = np.asarray(_field(fields, "obj_rotvec", path), dtype=np.float64)
+        trans = np.asarray(_field(fields, "obj_trans", path), dtype=np.float64)
+        good = np.isfinite(rotvec).all(axis=1) & np.isfinite(trans).all(axis=1)
+        pose = np.full((len(rotvec), 4, 4), np.nan)
+        rotation = Rotation.from_rotvec(rotvec[good])
+        pose[good] = RigidTransform.from_components(trans[good], rotation).as_matrix()
+    pose[:, :3, 3] *= scale
+    if "valid" in fields:
+        kp[~np.asarray(fields["valid"], dtype=bool)] = np.nan
+    fps = float(fields.get("fps", options.fps or 0.0))
+    if "timestamps" in fields:
+        kp, pose, fps = _on_uniform_grid(path, fields["timestamps"], fps, kp, pose)
+    if fps <= 0:
+        raise DatasetLayoutError(f"{path}: no 'fps' in the file and no --fps given")
+    mesh = src / str(_field(fields, "obj_mesh", path))
+    return RawSequence(
+        path.stem,
+        kp * scale,
+        pose,
+        mesh,
+        mesh.stem,
+        fps,
+        str(fields.get("side", "right")),
+        "generic",
+    )
+
+
+def _on_uniform_grid(
+    path: Path, timestamps, fps: float, kp: np.ndarray, pose: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Frames placed at their timestamps on the ``1/fps`` grid, gaps filled with frames without
+    a hand (NaN keypoints and object pose: masked and held by :func:`write_sequence`).
+
+    ``fps <= 0`` takes the rate from the median step. Returns ``(keypoints, obj_pose, fps)``.
+    """
+    ts = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    if len(ts) != len(kp):
+        raise DatasetLayoutError(f"{path}: {len(ts)} timestamps for {len(kp)} frames")
+    steps = np.diff(ts)
+    bad = np.flatnonzero(~(steps > 0))
+    if len(bad):
+        raise DatasetLayoutError(
+            f"{path}: timestamps must increase; frame {bad[0] + 1} is at {ts[bad[0] + 1]!r} s, "
+            f"after {ts[bad[0]]!r} s"
+        )
+    if fps <= 0:
+        fps = 1.0 / float(np.median(steps))
+    position = (ts - ts[0]) * fps
+    slot = np.round(position).astype(np.int64)
+    off = np.flatnonzero(np.abs(position - slot) > 0.25)
+    if len(off):
+        frame = int(off[0])
+        raise DatasetLayoutError(
+            f"{path}: frame {frame} (at {ts[frame]:.4g} s) is {position[frame] - slot[frame]:+.2f} "
+            f"frames off the 1/fps grid at {fps:g} fps: give the capture's fps, or resample it "
+            "to a constant rate first"
+        )
+    if (np.diff(slot) == 0).any() or slot[-1] + 1 > 10 * len(ts):
+        raise DatasetLayoutError(
+            f"{path}: the timestamps do not fit {fps:g} fps ({len(ts)} frames over "
+            f"{ts[-1] - ts[0]:.4g} s): are they seconds, and is fps the capture's rate?"
+        )
+    grid_kp = np.full((slot[-1] + 1, *kp.shape[1:]), np.nan)
+    grid_pose = np.full((slot[-1] + 1, 4, 4), np.nan)
+    grid_kp[slot], grid_pose[slot] = kp, pose
+    return grid_kp, grid_pose, fps
+
+
+ADAPTERS: dict[str, Callable[[Path, ConvertOptions], Iterator[SourceSequence]]] = {
     "dexycb": _dexycb,
     "ho3d": _ho3d,
     "grab": _grab,
@@ -538,8 +697,8 @@ def convert(
         skipped, failed) with its counts or its ``reason``/``error``, and the totals.
 
     Raises:
-        DatasetLayoutError: Unknown adapter, a missing source folder, or a source that does not
-            have the adapter's layout at all.
+        DatasetLayoutError: Unknown adapter, a missing source folder, a source that does not
+            have the adapter's layout at all, or data that needs a missing option (``--mano``).
     """
     if adapter not in ADAPTERS:
         raise DatasetLayoutError(f"unknown adapter '{adapter}'; known: {sorted(ADAPTERS)}")
@@ -553,27 +712,16 @@ def convert(
     StageDir(dst).sequences_dir.mkdir(parents=True, exist_ok=True)
     sequences: dict[str, dict] = {}
     for folder in sources:
-        for raw in ADAPTERS[adapter](folder, options):
-            if raw.name in sequences:
-                sequences[f"{raw.name} ({folder})"] = {
-                    "status": "failed",
-                    "error": f"{raw.name}: the same name comes from an earlier source; "
-                    f"convert {folder} into another root",
-                }
-                log.error("%s: duplicate sequence name from %s", raw.name, folder)
-                continue
-            if not raw.mesh_path.is_file():
-                reason = f"no object model of '{raw.obj_name}': {raw.mesh_path} is missing"
-                status = "failed" if options.strict else "skipped"
-                key = "error" if options.strict else "reason"
-                sequences[raw.name] = {"status": status, key: reason}
-                (log.error if options.strict else log.warning)("%s: %s", raw.name, reason)
-                continue
+        for source in ADAPTERS[adapter](folder, options):
             try:
-                sequences[raw.name] = {"status": "ok", **write_sequence(raw, dst, options)}
-            except (DexflowError, SequenceFormatError) as exc:
-                sequences[raw.name] = {"status": "failed", "error": str(exc)}
-                log.error("%s: %s", raw.name, exc)
+                raws = source.read()
+            except MissingOptionError:
+                raise
+            except Exception as exc:  # one unreadable source sequence never stops the others
+                sequences[source.name] = {"status": "failed", "error": _reason(exc, source)}
+                log.error("%s: %s", source.name, sequences[source.name]["error"])
+                continue
+            _convert_each(raws, source, folder, dst, options, sequences)
     statuses = [entry["status"] for entry in sequences.values()]
     report = {
         "adapter": adapter,
@@ -586,3 +734,43 @@ def convert(
     }
     save_json(dst / "convert.json", report)
     return report
+
+
+def _reason(exc: Exception, source: SourceSequence) -> str:
+    """An error's message, naming the source it came from unless it already does."""
+    text = str(exc) if isinstance(exc, DexflowError) else f"{type(exc).__name__}: {exc}"
+    return text if str(source.path) in text else f"{text} (source: {source.path})"
+
+
+def _convert_each(
+    raws: list[RawSequence],
+    source: SourceSequence,
+    folder: Path,
+    dst: Path,
+    options: ConvertOptions,
+    sequences: dict[str, dict],
+) -> None:
+    """Write each sequence read from ``source``, recording its entry in ``sequences``."""
+    for raw in raws:
+        if raw.name in sequences:
+            sequences[f"{raw.name} ({folder})"] = {
+                "status": "failed",
+                "error": f"{raw.name}: the same name comes from an earlier source; "
+                f"convert {folder} into another root",
+            }
+            log.error("%s: duplicate sequence name from %s", raw.name, folder)
+            continue
+        if not raw.mesh_path.is_file():
+            reason = f"no object model of '{raw.obj_name}': {raw.mesh_path} is missing"
+            status = "failed" if options.strict else "skipped"
+            key = "error" if options.strict else "reason"
+            sequences[raw.name] = {"status": status, key: reason}
+            (log.error if options.strict else log.warning)("%s: %s", raw.name, reason)
+            continue
+        try:
+            sequences[raw.name] = {"status": "ok", **write_sequence(raw, dst, options)}
+        except MissingOptionError:
+            raise
+        except Exception as exc:  # reported with its source; the others go on
+            sequences[raw.name] = {"status": "failed", "error": _reason(exc, source)}
+            log.error("%s: %s", raw.name, sequences[raw.name]["error"])
