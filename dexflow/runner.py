@@ -20,7 +20,8 @@ code:
 - 1: no sequence went through, or an item failed for a reason other than its input (a full disk,
   memory, a killed worker: :class:`~dexflow.errors.IncompleteStageError`). Nothing is written
   then, so DVC caches nothing, and the next ``dvc repro`` resumes and retries those items;
-- 2: ``params.yaml`` (or a file it names) is invalid; the one-line message names the key.
+- 2: the configuration or the input as a whole is unusable (``params.yaml``, no sequences
+  under ``data.root``); the one-line message names the key or the folder.
 
 Runners return their summary (what ``summary.json`` holds) with the wall-clock figures under the
 key ``timing``, which is never written into the stage's outputs (DVC hashes those).
