@@ -6,6 +6,7 @@ Subcommands:
   demo OUT [--objects ...]          generate (part of) the demo dataset outside the pipeline
   convert ADAPTER SRC [SRC ...] DST [--strict]
                                     dexycb | ho3d | grab | generic -> canonical sequences
+  hand init MODEL [--side S] [-o Y] propose a hand yaml from a URDF or MJCF model
   hand check NAME|YAML [--png P]    validate a hand, print its kinematic tree, draw its zero pose
   hand export NAME|YAML OUT.urdf    write an MJCF hand as a URDF (for pybullet)
   bench fk|retarget|refine|simulate|pipeline|real
@@ -150,6 +151,36 @@ def _cmd_convert(args: argparse.Namespace) -> int:
         f" ({report['num_skipped']} skipped, {report['num_failed']} failed)"
     )
     return 0 if report["num_ok"] and not report["num_failed"] else 1
+
+
+def _cmd_hand_init(args: argparse.Namespace) -> int:
+    from dexflow.hands.check import check_hand
+    from dexflow.hands.init import init_hand
+    from dexflow.human.keypoints import KEYPOINT_NAMES
+
+    default = Path("conf/hand") if Path("conf/hand").is_dir() else Path()
+    out = Path(args.out) if args.out else default / f"{Path(args.model).stem}.yaml"
+    proposal = init_hand(
+        args.model, out, side=args.side, mirror=args.mirror, name=args.name,
+        overwrite=args.force,
+    )  # fmt: skip
+    spec = proposal.spec
+    how = "mirrored to a right hand" if spec.mirrored else "used as it is"
+    print(f"{args.model}: a {spec.side} hand ({how}); fingers meet at '{proposal.palm}'")
+    written = {kp.mano: kp for kp in spec.keypoints}
+    for f in proposal.fingers:
+        mapped = [f"{KEYPOINT_NAMES[k]}={written[k].link}" for k in f.keypoints if k in written]
+        print(f"  {f.name:<6} {len(f.joints)} joints from '{f.root}': {', '.join(mapped)}")
+    print(f"  wrist  {written[0].link} + {written[0].offset}")
+    print(
+        f"  extra_joints {spec.extra_joints}; {len(spec.couplings)} couplings; "
+        f"scale {spec.scale:.3f} ({proposal.notes['scale']})"
+    )
+    for key, text in proposal.guesses:
+        print(f"GUESS ({key}): {text}")
+    check_hand(out)
+    print(f"wrote {out}; `dexflow hand check {out}` passes")
+    return 0
 
 
 def _cmd_hand_check(args: argparse.Namespace) -> int:
@@ -307,6 +338,24 @@ def build_parser() -> argparse.ArgumentParser:
     hand = sub.add_parser("hand", help="inspect robot hands").add_subparsers(
         dest="hand_cmd", required=True
     )
+    p = hand.add_parser(
+        "init",
+        help="propose a hand yaml from a URDF or MJCF model",
+        description="Find the fingers in the kinematic tree, name them by geometry, map their "
+        "joints to human keypoints and write a commented hand yaml; guesses are marked GUESS.",
+    )
+    p.add_argument("model", help="URDF or MJCF file, or pkg://<package>/<file>")
+    p.add_argument(
+        "--side", choices=["right", "left"], help="the model's side (default: from its geometry)"
+    )
+    p.add_argument(
+        "--mirror", action="store_true",
+        help="write a left hand as its mirror image, a right hand (default: use it as it is)",
+    )  # fmt: skip
+    p.add_argument("-o", "--out", help="the yaml to write (default: conf/hand/<model stem>.yaml)")
+    p.add_argument("--name", default="", help="the hand's name (default: the yaml's stem)")
+    p.add_argument("--force", action="store_true", help="replace an existing yaml")
+    p.set_defaults(func=_cmd_hand_init)
     p = hand.add_parser("check", help="validate a hand, print its tree, draw its zero pose")
     p.add_argument("hand", help="name in conf/hand/ or a yaml path")
     p.add_argument("--png", default=None, help="zero-pose picture (default: <name>_zero_pose.png)")

@@ -72,6 +72,11 @@ class HandSpec:
         couplings: Joints tied to others.
         surface_points: Points sampled on the collision geometry of the whole hand.
         surface_exclude: Links left out of the surface points (e.g. a forearm).
+        side: The robot hand's side, 'right' or 'left' (scale_align mirrors human hands of
+            the other side, with their scene, to the model's).
+        mirrored: True if ``model`` is the mirror image (x -> -x) of the robot's own model, so
+            of the other side than ``side`` (``dexflow hand init --mirror`` writes a left
+            hand's mirror image, a right hand).
     """
 
     name: str = "hand"
@@ -85,6 +90,8 @@ class HandSpec:
     couplings: list[CouplingSpec] = field(default_factory=list)
     surface_points: int = 2048
     surface_exclude: list[str] = field(default_factory=list)
+    side: str = "right"
+    mirrored: bool = False
 
     def __post_init__(self) -> None:
         where = f"hand '{self.name}'"
@@ -110,6 +117,8 @@ class HandSpec:
                 raise HandConfigError(f"{where}: keypoint '{kp.link}' offset must be [x, y, z]")
         if self.surface_points < 1:
             raise HandConfigError(f"{where}: surface_points must be >= 1")
+        if self.side not in ("right", "left"):
+            raise HandConfigError(f"{where}: side must be 'right' or 'left', found {self.side!r}")
 
     @property
     def mano_indices(self) -> list[int]:
