@@ -362,11 +362,14 @@ class RefineParams:
     refine_base: bool = False
     release: bool = True
     release_w_pen: float = 300.0
-    release_w_touch: float = 100.0
+    release_w_touch: float = 1000.0
     release_w_track: float = 30.0
-    release_w_smooth: float = 300.0
-    release_w_smooth_joints: float = 30.0
+    release_tip_weight: float = 10.0
+    release_w_smooth: float = 1000.0
+    release_w_smooth_joints: float = 1000.0
     release_iterations: int = 60
+    release_rounds: int = 3
+    release_depth_m: float = 0.004
 
 
 ENGINES = ("pybullet", "mujoco")
@@ -606,9 +609,11 @@ def validate(params: PipelineParams) -> PipelineParams:
     _require(not unknown, "refine.finger_order", "finger names thumb..little", unknown)
     _require(r.spen_points >= 1, "refine.spen_points", ">= 1", r.spen_points)
     for key in ("w_dis", "w_pen", "w_align", "w_spen", "w_joints", "w_smooth", "learning_rate",
-                "release_w_pen", "release_w_touch", "release_w_track", "release_w_smooth",
-                "release_w_smooth_joints", "release_iterations"):  # fmt: skip
+                "release_w_pen", "release_w_touch", "release_w_track", "release_tip_weight",
+                "release_w_smooth", "release_w_smooth_joints", "release_iterations",
+                "release_depth_m"):  # fmt: skip
         _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
+    _require(r.release_rounds >= 1, "refine.release_rounds", ">= 1", r.release_rounds)
     _check_numbers(params.simulate, "simulate")
     _validate_simulate(params.simulate)
     m = params.metrics

@@ -30,13 +30,19 @@ freedom (floating base and all joints) of every frame is optimised jointly:
 
     E_rel = w_pen Σ_t Σ_p max(0, m - sd(p))²                 (every hand surface point)
           + w_touch Σ_t Σ_{f in contact} max(0, min_{p∈f} sd(p))²   (contact fingers keep touching)
-          + w_track Σ_t Σ_k ||v^k(q_t) - v^k(q_t^0)||²        (keypoints stay where they were)
+          + w_track Σ_t Σ_k w_k ||v^k(q_t) - v^k(q_t^0)||²    (keypoints stay where they were)
           + w_smooth Σ_t ||Δ̈v_t||² + w_smooth_joints Σ_t ||Δ̈θ_t||²   (no added jitter)
 
 with ``Δv = v(q) - v(q^0)`` the change of the keypoints, ``Δθ`` that of the hand joints and
-``Δ̈`` second differences over frames. The hand backs out of the object as a whole, the
+``Δ̈`` second differences over frames; ``w_k`` is ``release_tip_weight`` for the fingertip
+keypoints and 1 for the others, so that the palm and the proximal links give way before the
+fingertips (what the motion is judged by) do. The hand backs out of the object as a whole, the
 fingers flex back onto it, and the change varies smoothly over time. It is solved by L-BFGS
-over all frames at once (``release_iterations``).
+over all frames at once (``release_iterations``). A quadratic penalty trades depth against the
+other terms, so the deepest frames of a real capture (fingers 2 cm inside the scan) would keep
+part of theirs: the last release is solved again (``release_rounds``) with ten times the
+``w_pen`` of every frame still deeper than ``release_depth_m`` (a penalty continuation), which
+bounds the worst frame and not only the mean.
 
 Joint limits hold exactly (projection after every step and after blending). Metres.
 """
@@ -51,6 +57,7 @@ import torch
 
 from dexflow.geometry import rotate_vectors, transform_points
 from dexflow.hands.robot import RobotHand, cached_hand
+from dexflow.human.keypoints import FINGERTIPS
 from dexflow.io.artifacts import (
     ObjectAssets,
     Trajectory,
@@ -159,7 +166,7 @@ def refine_trajectory(
     inv = torch.as_tensor(np.linalg.inv(obj_pose), dtype=hand.dtype)
     q_start = q_init
     if params.release:
-        q_start = release_hand(hand, q_init, inv, sdf, contact, params)
+        q_start = release_hand(hand, q_init, inv, sdf, contact, params, rounds=1)
     q = torch.as_tensor(q_start, dtype=hand.dtype).clone()
     rng = np.random.default_rng(0)
     energy_before = np.zeros(len(q))
@@ -186,6 +193,7 @@ def release_hand(
     contact: np.ndarray,
     params: RefineParams,
     reference: np.ndarray | None = None,
+    rounds: int | None = None,
 ) -> np.ndarray:
     """Free the whole hand from the object (``E_rel`` of the module docstring).
 
@@ -195,6 +203,8 @@ def release_hand(
         contact: (T, F) contact states (fingers in the hand config's order).
         reference: (T, dof) trajectory whose keypoints and joints the change is measured
             against (default ``q_init``).
+        rounds: Solves at most (default ``params.release_rounds``); after each, the frames
+            still deeper than ``params.release_depth_m`` get ten times their ``w_pen``.
 
     Returns:
         (T, dof) released trajectory within the joint limits, tendon ties exact.
@@ -207,23 +217,29 @@ def release_hand(
     masks = torch.as_tensor(np.stack(list(hand.finger_point_masks.values())))  # (F, N)
     touching = torch.as_tensor(np.asarray(contact, dtype=bool))  # (T, F)
     lo, hi = hand.lower[free], hand.upper[free]
+    tips = [m in FINGERTIPS for m in hand.mano_indices]
+    track_w = torch.where(torch.as_tensor(tips), params.release_tip_weight, 1.0).to(hand.dtype)
     delta = torch.zeros(len(q0), len(free), dtype=hand.dtype, requires_grad=True)
     margin = params.pen_margin_m
+    w_pen = torch.full((len(q0),), params.release_w_pen, dtype=hand.dtype)
 
-    def energy() -> torch.Tensor:
+    def configuration() -> torch.Tensor:
         q = q0.clone()
         q[:, free] = torch.maximum(torch.minimum(q0[:, free] + delta, hi), lo)
-        q = hand.apply_couplings(q)
+        return hand.apply_couplings(q)
+
+    def energy() -> torch.Tensor:
+        q = configuration()
         transforms = hand.frame_transforms(q)
         points, _ = hand.surface(q, transforms)
         sd = sdf(transform_points(world_to_obj, points))  # (T, N)
-        total = params.release_w_pen * (torch.relu(margin - sd) ** 2).sum()
+        total = (w_pen * (torch.relu(margin - sd) ** 2).sum(-1)).sum()
         if touching.any():
             per_finger = torch.where(masks[None], sd[:, None], torch.inf).amin(-1)  # (T, F)
             gap = torch.relu(per_finger[touching])
             total = total + params.release_w_touch * (gap**2).sum()
         change = hand.keypoints(q, transforms) - kp_ref
-        total = total + params.release_w_track * (change**2).sum()
+        total = total + params.release_w_track * ((change**2).sum(-1) * track_w).sum()
         if len(q) > 2:
             acc = change[2:] - 2 * change[1:-1] + change[:-2]
             total = total + params.release_w_smooth * (acc**2).sum()
@@ -232,22 +248,26 @@ def release_hand(
             total = total + params.release_w_smooth_joints * (acc_j**2).sum()
         return total
 
-    optimizer = torch.optim.LBFGS(
-        [delta], max_iter=params.release_iterations, line_search_fn="strong_wolfe",
-        tolerance_grad=1e-10, tolerance_change=1e-14, history_size=20,
-    )  # fmt: skip
-
     def closure() -> torch.Tensor:
-        optimizer.zero_grad()
+        delta.grad = None
         e = energy()
         e.backward()
         return e
 
-    optimizer.step(closure)
+    for _ in range(params.release_rounds if rounds is None else rounds):
+        torch.optim.LBFGS(
+            [delta], max_iter=params.release_iterations, line_search_fn="strong_wolfe",
+            tolerance_grad=1e-10, tolerance_change=1e-14, history_size=20,
+        ).step(closure)  # fmt: skip
+        with torch.no_grad():
+            points, _ = hand.surface(configuration())
+            depth = torch.relu(-sdf(transform_points(world_to_obj, points)).amin(-1))
+        deep = depth > params.release_depth_m
+        if not deep.any():
+            break
+        w_pen = torch.where(deep, w_pen * 10, w_pen)
     with torch.no_grad():
-        q = q0.clone()
-        q[:, free] = q0[:, free] + delta
-        return hand.clamp(hand.apply_couplings(q)).numpy()
+        return hand.clamp(configuration()).numpy()
 
 
 def energy_terms(

@@ -10,9 +10,10 @@ from scipy.spatial import cKDTree
 
 from dexflow.contact import _contact_map, finger_distances
 from dexflow.hands import load_hand
+from dexflow.human.keypoints import FINGERTIPS
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import RefineParams
-from dexflow.refine import TorchSDF, energy_terms, refine_trajectory
+from dexflow.refine import TorchSDF, energy_terms, refine_trajectory, release_hand
 
 FRAMES = 3
 
@@ -43,7 +44,7 @@ def _index_distance(hand, q, pose, grid):
     return per_finger[:, list(hand.spec.fingers).index("index")]
 
 
-def _refine(hand, q, pose, box, grid, contact, pen_margin_m=0.001, release=False):
+def _refine(hand, q, pose, box, grid, contact, pen_margin_m=0.001, release=False, **overrides):
     _, dist, local = finger_distances(hand, q, pose, grid)
     points, faces = trimesh.sample.sample_surface(box, 4000, seed=0)
     cmap = _contact_map(
@@ -56,7 +57,7 @@ def _refine(hand, q, pose, box, grid, contact, pen_margin_m=0.001, release=False
         8,
     )
     params = RefineParams(
-        blend_frames=0.0, iterations=80, pen_margin_m=pen_margin_m, release=release
+        blend_frames=0.0, iterations=80, pen_margin_m=pen_margin_m, release=release, **overrides
     )
     q1, e0, e1 = refine_trajectory(hand, q, pose, TorchSDF(grid), contact, cmap, params)
     return q1, e0, e1
@@ -202,10 +203,44 @@ def test_release_frees_a_palm_inside_the_object(allegro):
 
 
 def test_release_keeps_a_contact_finger_on_the_surface(allegro):
+    """A pad 5 mm inside ends on the surface: not left deeper than release_depth_m (here
+    0.5 mm; the fingertip's tracking weight would otherwise keep ~1 mm of it), not pushed off."""
     q, pose, box, grid = _scene(allegro, -0.005)
     contact = np.zeros((FRAMES, 4), dtype=bool)
     contact[:, list(allegro.spec.fingers).index("index")] = True
-    q1, _, _ = _refine(allegro, q, pose, box, grid, contact, release=True)
+    q1, _, _ = _refine(allegro, q, pose, box, grid, contact, release=True, release_depth_m=0.0005)
     after = _index_distance(allegro, q1, pose, grid)
     assert np.all(after > -0.0005) and np.all(after < 0.0015), after
     assert np.all(_depth(allegro, q1, pose, grid) < 0.0005)
+
+
+def _release_palm(hand, depth_m, **overrides):
+    q, pose, grid = _palm_scene(hand, depth_m)
+    contact = np.zeros((len(q), 4), dtype=bool)
+    inv = torch.as_tensor(np.linalg.inv(pose))
+    q1 = release_hand(hand, q, inv, TorchSDF(grid), contact, RefineParams(**overrides))
+    with torch.no_grad():
+        moved = torch.linalg.norm(
+            hand.keypoints(torch.as_tensor(q1)) - hand.keypoints(torch.as_tensor(q)), dim=-1
+        ).numpy()
+    tips = np.isin(hand.mano_indices, FINGERTIPS)
+    return _depth(hand, q1, pose, grid), moved[:, tips].mean(), moved[:, ~tips].mean()
+
+
+def test_release_rounds_bound_the_deepest_frame(allegro):
+    """A palm 2 cm inside: one penalty solve trades part of the depth against the motion terms;
+    the continuation (frames still deeper than release_depth_m get 10x w_pen) brings it under."""
+    one, _, _ = _release_palm(allegro, 0.02, release_rounds=1)
+    three, _, _ = _release_palm(allegro, 0.02, release_rounds=3)
+    assert one.max() > RefineParams().release_depth_m
+    assert three.max() <= RefineParams().release_depth_m
+
+
+def test_release_moves_the_palm_before_the_fingertips(allegro):
+    """With release_tip_weight > 1 the fingertips stay nearer their place than the rest of the
+    hand while the palm backs out; at 1 they move about as much as the other keypoints."""
+    depth, tips, rest = _release_palm(allegro, 0.01, release_tip_weight=10.0)
+    assert depth.max() < 0.0005
+    assert tips < 0.4 * rest
+    _, tips_equal, _ = _release_palm(allegro, 0.01, release_tip_weight=1.0)
+    assert tips_equal > 2 * tips
