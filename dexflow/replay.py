@@ -360,13 +360,13 @@ def sequence_result(
     held = (lost[0] if len(lost) else len(pos)) / fps
     static = np.linalg.norm(poses[frames[grasp], :3, 3] - poses[first, :3, 3], axis=1)
     position_mean, rotation_mean = float(pos.mean()), float(rot.mean())
+    success = position_mean < p.max_position_error_m and rotation_mean < p.max_rotation_error_rad
     return {
         "replayed": True,
-        "frames": int(len(frames)),
+        "frames": len(frames),
         "first_contact": int(first),
         "end": int(frames[-1]),
-        "success": bool(position_mean < p.max_position_error_m
-                        and rotation_mean < p.max_rotation_error_rad),  # fmt: skip
+        "success": bool(success),
         "position_error_mean_m": position_mean,
         "rotation_error_mean_rad": rotation_mean,
         "position_error_max_m": float(pos.max()),
@@ -462,7 +462,10 @@ def run_replay(params: PipelineParams, layout: Layout, label: str) -> dict:
     summary["sequences"] = dict(sorted(tally.sequences.items()))
     stage.finish(summary)
     frames = summary["num_frames"]
-    return {**summary, "timing": {"frames_per_second_one_core": frames / seconds if seconds else 0.0}}
+    return {
+        **summary,
+        "timing": {"frames_per_second_one_core": frames / seconds if seconds else 0.0},
+    }
 
 
 STAGE = StageSpec(

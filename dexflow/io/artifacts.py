@@ -36,10 +36,10 @@ if TYPE_CHECKING:
 
 __all__ = [
     "ENGINE_KEYS",
+    "REPLAY_KEYS",
     "SIMULATION_KEYS",
     "ContactResult",
     "MetricFrames",
-    "REPLAY_KEYS",
     "ObjectAssets",
     "ReplayResult",
     "SimulationResult",
