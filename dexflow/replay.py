@@ -144,11 +144,11 @@ class ReplayWorld(MujocoGraspWorld):
                     actuator.set_to_velocity(kv=1.0)
                 actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
         sliding, torsional = self.params.mujoco.friction
-        scene.worldbody.add_geom(
+        table = scene.worldbody.add_body(name=_TABLE, mocap=True)  # moved per sequence
+        table.add_geom(
             name=_TABLE,
             type=mujoco.mjtGeom.mjGEOM_BOX,
             size=list(_TABLE_HALF_SIZE_M),
-            pos=[0.0, 0.0, -10.0],  # placed per sequence
             contype=_TABLE_BITS,
             conaffinity=_TABLE_BITS,
             condim=4,
@@ -174,7 +174,8 @@ class ReplayWorld(MujocoGraspWorld):
         self._hand_act = np.arange(hand)
         self._base_pos_act = np.arange(hand, hand + 6)
         self._base_vel_act = np.arange(hand + 6, hand + 12)
-        self._table = m.geom(_TABLE).id
+        self._table = int(m.body_mocapid[m.body(_TABLE).id])
+        self._table_pos = np.array([0.0, 0.0, -10.0])
         # the friction the grasp test scales per trial: the table's too
         self._friction = m.geom_friction[:, 0].copy()
 
@@ -193,16 +194,22 @@ class ReplayWorld(MujocoGraspWorld):
         d.ctrl[self._base_pos_act] = q[:6]
         d.ctrl[self._base_vel_act] = 0.0
         d.qpos[self._object_qpos] = _pose7(pose)
+        d.mocap_pos[self._table] = self._table_pos
         mujoco.mj_forward(m, d)
 
     def place_table(self, pose: np.ndarray) -> float:
         """Put the table's top at the lowest point of the object's parts at ``pose`` (4, 4),
-        centred under it; returns the top's height (m)."""
+        centred under it (from the next reset on); returns the top's height (m).
+
+        The table is a mocap body: MuJoCo's collision detection takes geoms of the world body
+        for static, so moving one of those at run time would leave it out of the collisions.
+        """
         self._require_object("place_table")
         points = np.concatenate(self._parts) @ pose[:3, :3].T + pose[:3, 3]
         top = float(points[:, 2].min())
         centre = points[:, :2].mean(axis=0)
-        self.model.geom_pos[self._table] = [*centre, top - _TABLE_HALF_SIZE_M[2]]
+        self._table_pos = np.array([*centre, top - _TABLE_HALF_SIZE_M[2]])
+        self.data.mocap_pos[self._table] = self._table_pos
         return top
 
     def _drive_gains(self) -> None:
