@@ -491,6 +491,10 @@ class ReplayParams:
         gravity: m/s², along -z of the world.
         max_position_error_m: SPIDER's success: the object's mean position error below this ...
         max_rotation_error_rad: ... and its mean rotation error below this.
+        carried_fraction: The object is *carried* when its final position error is below
+            ``max_position_error_m`` and below this fraction of the final error an object left
+            where it was at the first contact would have (the recorded object's net
+            displacement over the grasp); *success* needs SPIDER's criterion and carried.
         lost_position_m: The object is *lost* from the first frame its position error exceeds
             this (or its rotation error ``lost_rotation_rad``); time held is the time before.
         lost_rotation_rad: See ``lost_position_m``.
@@ -510,6 +514,7 @@ class ReplayParams:
     gravity: float = 9.81
     max_position_error_m: float = 0.1
     max_rotation_error_rad: float = 0.5
+    carried_fraction: float = 0.5
     lost_position_m: float = 0.05
     lost_rotation_rad: float = 0.5
 
@@ -521,6 +526,8 @@ def _validate_replay(r: ReplayParams) -> None:
                 "max_position_error_m", "max_rotation_error_rad", "lost_position_m",
                 "lost_rotation_rad"):  # fmt: skip
         _require(getattr(r, key) > 0, f"replay.{key}", "> 0", getattr(r, key))
+    _require(0 < r.carried_fraction <= 1, "replay.carried_fraction", "within (0, 1]",
+             r.carried_fraction)  # fmt: skip
     _require(r.squeeze_m <= 0.02, "replay.squeeze_m", "within [0, 0.02] metres", r.squeeze_m)
     _require(len(r.friction) == 2, "replay.friction", "[sliding, torsional], both >= 0",
              r.friction)  # fmt: skip

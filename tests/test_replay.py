@@ -65,6 +65,8 @@ def test_closed_hand_lifting_the_box_carries_it(scene):
     rows = world.replay(_lift(closed, rise), poses, FPS, WINDOW)
     result = sequence_result(rows, 0, poses, FPS, world.replay_params)
     assert result["success"] and not result["lost"] and result["lost_frame"] == -1
+    assert result["spider_success"] and result["carried"]
+    assert result["static_error_final_m"] == pytest.approx(RISE_M)
     assert result["held_fraction"] == 1.0 and result["held_s"] == pytest.approx(len(rise) / FPS)
     assert rows["position_error_m"].max() < 0.02 and rows["rotation_error_rad"].max() < 0.2
     assert rows["object_position"][-1, 2] > poses[0, 2, 3] + 0.2  # really up in the air
@@ -78,7 +80,7 @@ def test_open_hand_leaves_the_box_behind(scene):
     _, world, poses, opened, _, rise, _ = scene
     rows = world.replay(_lift(opened, rise), poses, FPS, WINDOW)
     result = sequence_result(rows, 0, poses, FPS, world.replay_params)
-    assert not result["success"] and result["lost"]
+    assert not result["success"] and not result["carried"] and result["lost"]
     np.testing.assert_allclose(rows["position_error_m"], rise, atol=2e-3)  # it did not move
     first_beyond = int(np.argmax(rise > world.replay_params.lost_position_m))
     assert abs(result["lost_frame"] - first_beyond) <= 1
@@ -154,3 +156,38 @@ def test_errors_are_distance_and_angle_against_the_recorded_pose():
     distance, angle = replay_errors(position, quat, poses)
     np.testing.assert_allclose(distance, [0.0, 0.05])
     np.testing.assert_allclose(angle, [0.0, np.pi / 2])
+
+
+def _rows(position: np.ndarray) -> dict[str, np.ndarray]:
+    """Replay rows with the object at ``position (T, 3)``, unrotated, hand followed exactly."""
+    n = len(position)
+    return {
+        "frame": np.arange(n),
+        "position_error_m": np.zeros(n),
+        "rotation_error_rad": np.zeros(n),
+        "object_position": position,
+        "object_quat": np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
+        "base_error_m": np.zeros(n),
+        "joint_error_rad": np.zeros(n),
+    }
+
+
+def test_spider_success_alone_passes_an_object_left_behind_carried_does_not():
+    """The recorded object rises 20 cm in the last fifth of the grasp: one left where it was has
+    a mean error of 2 cm (SPIDER's success) but ends 20 cm off (not carried, no success); one
+    that follows to within 5 cm of its end (under half of 20 cm) is carried."""
+    p = ReplayParams()
+    rise = np.concatenate([np.zeros(80), np.linspace(0.0, 0.2, 20)])
+    poses = np.repeat(np.eye(4)[None], len(rise), axis=0)
+    poses[:, 2, 3] = rise
+    for end, carried in [(0.0, False), (0.15, True), (0.09, False)]:
+        position = np.zeros((len(rise), 3))
+        position[:, 2] = np.minimum(rise, end)
+        rows = _rows(position)
+        rows["position_error_m"], rows["rotation_error_rad"] = replay_errors(
+            position, rows["object_quat"], poses
+        )
+        result = sequence_result(rows, 0, poses, FPS, p)
+        assert result["spider_success"], end
+        assert result["carried"] is carried and result["success"] is carried, end
+        assert result["static_error_final_m"] == pytest.approx(0.2)
