@@ -257,13 +257,23 @@ class MujocoGraspWorld:
 
     def __init__(self, hand: RobotHand, params: SimulateParams) -> None:
         self.hand, self.params = hand, params
-        self._spec = _hand_spec(hand, params)
+        self._spec = self._scene()
         self._parts: list[np.ndarray] | None = None
         self._object_key: tuple | None = None
         self._compile(self._spec)
         self._check_kinematics()
 
     # ---------------------------------------------------------------------------- building
+
+    def _scene(self) -> mujoco.MjSpec:
+        """The scene without an object (:class:`dexflow.replay.ReplayWorld` adds its own)."""
+        return _hand_spec(self.hand, self.params)
+
+    def _with_object(self, parts: list[np.ndarray]) -> mujoco.MjSpec:
+        """The scene with the object of ``parts`` added."""
+        scene = self._spec.copy()
+        _add_object(scene, parts, self.params)
+        return scene
 
     def _compile(self, spec: mujoco.MjSpec) -> None:
         try:
@@ -344,9 +354,7 @@ class MujocoGraspWorld:
             return
         self._parts = read_convex_obj(convex_obj)
         self._object_key = key
-        scene = self._spec.copy()
-        _add_object(scene, self._parts, self.params)
-        self._compile(scene)
+        self._compile(self._with_object(self._parts))
 
     # ------------------------------------------------------------------------------- state
 

@@ -30,6 +30,7 @@ __all__ = [
     "PerturbationParams",
     "PipelineParams",
     "RefineParams",
+    "ReplayParams",
     "RetargetParams",
     "RunParams",
     "ScaleAlignParams",
@@ -468,6 +469,70 @@ class SimulateParams:
     massless_link_inertia_kgm2: float = 1e-7
 
 
+@dataclass
+class ReplayParams:
+    """Stage ``replay`` (``replay`` in params.yaml): the trajectory played back in MuJoCo with
+    the object free under gravity (see :mod:`dexflow.replay`).
+
+    Attributes:
+        lead_frames: Frames before the first contact the replay starts at (the hand approaches).
+        substeps: Physics steps per recorded frame (time step ``1 / (fps * substeps)``).
+        base_frequency_hz: Natural frequency of the base's six position servos (critically
+            damped, velocity fed forward), from each axis's inertia.
+        base_force_n: Force limit of each of the base's three translation servos.
+        base_torque_nm: Torque limit of each of its three rotation servos.
+        kp: Position gain of every finger joint's actuator, N·m/rad.
+        joint_damping: Damping of every finger joint, N·m·s/rad (added to the model's own).
+        joint_torque_nm: Torque limit of every finger actuator (0: unlimited).
+        squeeze_m: Fingers in contact (stage contact's final states) get targets pushed this far
+            into the object at the recorded pose (0: the recorded q as it is).
+        object_mass_kg: Object mass, uniform density over its convex parts.
+        friction: Sliding and torsional friction of every geom, elliptic cones.
+        gravity: m/s², along -z of the world.
+        max_position_error_m: SPIDER's success: the object's mean position error below this ...
+        max_rotation_error_rad: ... and its mean rotation error below this.
+        carried_fraction: The object is *carried* when its final position error is below
+            ``max_position_error_m`` and below this fraction of the final error an object left
+            where it was at the first contact would have (the recorded object's net
+            displacement over the grasp); *success* needs SPIDER's criterion and carried.
+        lost_position_m: The object is *lost* from the first frame its position error exceeds
+            this (or its rotation error ``lost_rotation_rad``); time held is the time before.
+        lost_rotation_rad: See ``lost_position_m``.
+    """
+
+    lead_frames: int = 5
+    substeps: int = 8
+    base_frequency_hz: float = 20.0
+    base_force_n: float = 100.0
+    base_torque_nm: float = 10.0
+    kp: float = 20.0
+    joint_damping: float = 0.1
+    joint_torque_nm: float = 5.0
+    squeeze_m: float = 0.0
+    object_mass_kg: float = 0.1
+    friction: tuple[float, float] = (1.0, 0.02)
+    gravity: float = 9.81
+    max_position_error_m: float = 0.1
+    max_rotation_error_rad: float = 0.5
+    carried_fraction: float = 0.5
+    lost_position_m: float = 0.05
+    lost_rotation_rad: float = 0.5
+
+
+def _validate_replay(r: ReplayParams) -> None:
+    _check_numbers(r, "replay")
+    _require(r.substeps >= 1, "replay.substeps", ">= 1", r.substeps)
+    for key in ("base_frequency_hz", "base_force_n", "base_torque_nm", "kp", "object_mass_kg",
+                "max_position_error_m", "max_rotation_error_rad", "lost_position_m",
+                "lost_rotation_rad"):  # fmt: skip
+        _require(getattr(r, key) > 0, f"replay.{key}", "> 0", getattr(r, key))
+    _require(0 < r.carried_fraction <= 1, "replay.carried_fraction", "within (0, 1]",
+             r.carried_fraction)  # fmt: skip
+    _require(r.squeeze_m <= 0.02, "replay.squeeze_m", "within [0, 0.02] metres", r.squeeze_m)
+    _require(len(r.friction) == 2, "replay.friction", "[sliding, torsional], both >= 0",
+             r.friction)  # fmt: skip
+
+
 def _validate_simulate(s: SimulateParams) -> None:
     unknown = [e for e in s.engines if e not in ENGINES]
     _require(bool(s.engines) and not unknown, "simulate.engines", f"engines among {list(ENGINES)}",
@@ -562,6 +627,7 @@ class PipelineParams:
     contact: ContactParams = field(default_factory=ContactParams)
     refine: RefineParams = field(default_factory=RefineParams)
     simulate: SimulateParams = field(default_factory=SimulateParams)
+    replay: ReplayParams = field(default_factory=ReplayParams)
     metrics: MetricsParams = field(default_factory=MetricsParams)
     run: RunParams = field(default_factory=RunParams)
 
@@ -616,6 +682,7 @@ def validate(params: PipelineParams) -> PipelineParams:
     _require(r.release_rounds >= 1, "refine.release_rounds", ">= 1", r.release_rounds)
     _check_numbers(params.simulate, "simulate")
     _validate_simulate(params.simulate)
+    _validate_replay(params.replay)
     m = params.metrics
     _check_numbers(m, "metrics")
     for key in ("pd_violation_m", "spd_violation_m", "limit_tolerance_rad"):

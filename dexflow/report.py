@@ -99,6 +99,7 @@ def write_project_summary(
         layout.stage_metrics_dir, layout.metrics_table, layout.plots,
         out_md or layout.summary_report, layout.figures, data_name=data_name,
         stage_summary=layout.metrics.summary,
+        replay_dirs={m: layout.replay(m).root for m in METHOD_LABELS},
     )  # fmt: skip
 
 
@@ -110,6 +111,7 @@ def write_summary(
     figures_dir,
     data_name: str | None = None,
     stage_summary: str | Path | None = None,
+    replay_dirs: dict[str, str | Path] | None = None,
 ) -> Path:
     """Write ``summary.md`` and its figures from the metrics stage's outputs.
 
@@ -123,6 +125,8 @@ def write_summary(
             demo by its ground truth (contact precision/recall exist only there).
         stage_summary: The metrics stage's ``summary.json``: every sequence dropped on the way
             (by which stage, why) and the warnings, listed in the report.
+        replay_dirs: Per method the replay stage's directory (``data/replay/<label>``): the
+            object's error over time is plotted from its sequences (None or absent: no plot).
     """
     import pandas as pd
 
@@ -166,6 +170,7 @@ def write_summary(
         "overlap with the convex parts the physics uses (which bulge beyond a scanned mesh by "
         "millimetres) is shown beside it.",
         "",
+        *_replay_section(stage, replay_dirs or {}, figures_dir, rel),
         "## Motion quality (paper Table III layout)",
         "",
         *_method_table(metrics, TABLE_III, paper=True),
@@ -206,6 +211,84 @@ def write_summary(
     with atomic_path(out_md) as tmp:
         tmp.write_text("\n".join(lines).rstrip() + "\n")
     return out_md
+
+
+def _replay_section(stage: dict, dirs: dict, figures_dir: Path, rel: Path) -> list[str]:
+    """Stage replay per method (its metrics), and the object's position error over time."""
+    found = {m: stage[f"replay_{m}"] for m in METHOD_LABELS if stage.get(f"replay_{m}")}
+    if not found:
+        return []
+    lines = [
+        "## Replay (object free under gravity: SPIDER's success and carried)",
+        "",
+        "| | replayed | success (%) | SPIDER (%) | carried (%) | position error (cm) | "
+        "rotation error (rad) | held (% of grasp) | lost (%) | left behind (cm) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for m, r in found.items():
+        cells = [
+            str(r.get("num_replayed", 0)), _cell(r.get("success_rate"), 1),
+            _cell(r.get("spider_success_rate"), 1), _cell(r.get("carried_rate"), 1),
+            _cell(100 * r.get("position_error_mean_m", math.nan), 1),
+            _cell(r.get("rotation_error_mean_rad")), _cell(100 * r.get("held_fraction", math.nan), 0),
+            _cell(r.get("lost_rate"), 0), _cell(100 * r.get("static_error_mean_m", math.nan), 1),
+        ]  # fmt: skip
+        lines.append(f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "The trajectory played back in MuJoCo from `replay.lead_frames` before the first contact "
+        "to the last contact: base along q through force-limited servos, fingers by position control, the "
+        "object free under gravity on a table (README, *Replay*). *SPIDER*: mean object error "
+        "below `replay.max_position_error_m` and `replay.max_rotation_error_rad` (10 cm, "
+        "0.5 rad). *Carried*: final position error below `replay.max_position_error_m` and "
+        "below `replay.carried_fraction` of the recorded object's net displacement (where an "
+        "object left behind ends). *Success*: both. Errors are means over the grasp. "
+        "*Held*: the share of the grasp before the "
+        "object is first `replay.lost_position_m` or `lost_rotation_rad` off its recorded pose "
+        "(*lost*). *Left behind*: the "
+        "mean error of an object that never moves; where it is below the threshold, SPIDER's "
+        "criterion alone does not tell carrying from leaving the object where it was.",
+        "",
+    ]
+    figure = _replay_figure(dirs, figures_dir)
+    if figure:
+        lines += [f"![Object position error over time, per method]({rel / figure})", ""]
+    return lines
+
+
+def _replay_figure(dirs: dict, figures_dir: Path) -> str | None:
+    """Mean (over sequences) object position error against time since the first contact."""
+    from dexflow.io.artifacts import read_replay
+
+    curves = {}
+    for m, root in dirs.items():
+        summary = _read_json(Path(root) / "summary.json")
+        runs = []
+        for name, entry in sorted(summary.get("sequences", {}).items()):
+            if entry.get("status") != "ok" or not entry.get("replayed"):
+                continue
+            rows = read_replay(Path(root) / "sequences" / f"{name}.npz").rows
+            runs.append(rows["position_error_m"][rows["frame"] >= entry["first_contact"]])
+        if runs:
+            longest = max(len(r) for r in runs)
+            padded = np.full((len(runs), longest), np.nan)
+            for i, r in enumerate(runs):
+                padded[i, : len(r)] = r
+            curves[m] = np.nanmean(padded, axis=0)
+    if not curves:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    colors = dict(zip(METHOD_LABELS, ["#999999", "#4c72b0", "#55a868"], strict=True))
+    for m, curve in curves.items():
+        ax.plot(np.arange(len(curve)), 100 * curve, label=METHOD_LABELS[m], color=colors[m])
+    ax.set_xlabel("frames since the first contact")
+    ax.set_ylabel("object position error (cm)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, figures_dir / "summary_replay.png")
+    plt.close("all")
+    return "summary_replay.png"
 
 
 def _read_json(path: str | Path | None) -> dict:

@@ -50,10 +50,11 @@ def stages():
     return _stages()
 
 
-@pytest.fixture(scope="module")
-def simulate_foreach():
+@pytest.fixture(scope="module", params=["simulate", "replay"])
+def simulate_foreach(request):
+    """The ``foreach`` of simulate and of replay: both run on the three trajectories."""
     dvc = yaml.safe_load((REPO / "dvc.yaml").read_text(encoding="utf-8"))
-    return dvc["stages"]["simulate"]["foreach"]
+    return dvc["stages"][request.param]["foreach"]
 
 
 # ------------------------------------------------------------------------ dvc.yaml agreement
@@ -67,6 +68,7 @@ _STAGE_PATHS = {
     "contact": (_LAYOUT.contact.root, "contact"),
     "refine": (_LAYOUT.refine.root, "refine"),
     **{f"simulate@{t}": (_LAYOUT.simulate(t).root, f"simulate_{t}") for t in TRAJECTORIES},
+    **{f"replay@{t}": (_LAYOUT.replay(t).root, f"replay_{t}") for t in TRAJECTORIES},
     "metrics": (_LAYOUT.metrics.root, "metrics"),
 }
 
@@ -118,6 +120,7 @@ def test_layout_paths_follow_its_root():
     layout = Layout(root)
     assert layout.scale_align.root == root / "data" / "scale_align"
     assert layout.simulate("refine").root == root / "data" / "simulate" / "refine"
+    assert layout.replay("baseline").root == root / "data" / "replay" / "baseline"
     assert layout.stage_metrics("contact") == root / "reports" / "metrics" / "contact.json"
     assert layout.metrics_table == root / "data" / "metrics" / "sequences.csv"
     assert layout.hand_dir == root / "conf" / "hand"

@@ -11,6 +11,7 @@ expected and what was found:
 - :class:`ObjectAssets` (stage scale_align, per object): signed distance, surface samples,
   convex parts;
 - :class:`SimulationResult` (stage simulate): one row per tested frame;
+- :class:`ReplayResult` (stage replay): the object's error over the replayed frames;
 - :class:`MetricFrames` (stage metrics): per-frame metrics of every trajectory.
 
 Paths come from :mod:`dexflow.io.layout`.
@@ -35,18 +36,22 @@ if TYPE_CHECKING:
 
 __all__ = [
     "ENGINE_KEYS",
+    "REPLAY_KEYS",
     "SIMULATION_KEYS",
     "ContactResult",
     "MetricFrames",
     "ObjectAssets",
+    "ReplayResult",
     "SimulationResult",
     "Trajectory",
     "read_contact",
     "read_metric_frames",
+    "read_replay",
     "read_simulation",
     "read_trajectory",
     "write_contact",
     "write_metric_frames",
+    "write_replay",
     "write_simulation",
     "write_trajectory",
 ]
@@ -329,6 +334,40 @@ def read_simulation(path: str | Path) -> SimulationResult:
     if missing:
         raise ArtifactError(f"{path}: missing {missing}; found {sorted(arrays)}")
     return SimulationResult({k: arrays[k] for k in keys}, _names(arrays["fingers"]), engines)
+
+
+# --------------------------------------------------------------------------------- replay
+
+# The per-frame arrays of a replay, one row per replayed frame (see ReplayResult).
+REPLAY_KEYS = ("frame", "position_error_m", "rotation_error_rad", "object_position",
+               "object_quat", "base_error_m", "joint_error_rad")  # fmt: skip
+
+
+@dataclass
+class ReplayResult:
+    """Stage replay's rows for one sequence, one per replayed frame (N rows, N may be 0).
+
+    Attributes:
+        rows: ``frame (N,)`` (index into the sequence), the simulated object's
+            ``position_error_m (N,)`` and ``rotation_error_rad (N,)`` against its recorded pose,
+            its ``object_position (N, 3)`` and ``object_quat (N, 4)`` (w, x, y, z) in the world,
+            and how well the hand followed q: ``base_error_m (N,)`` (the base's position) and
+            ``joint_error_rad (N,)`` (mean over the finger joints).
+    """
+
+    rows: dict[str, np.ndarray]
+
+
+def write_replay(path: str | Path, result: ReplayResult) -> None:
+    missing = [k for k in REPLAY_KEYS if k not in result.rows]
+    if missing:
+        raise ArtifactError(f"{path}: replay rows lack {missing}")
+    save_npz(path, {k: np.asarray(result.rows[k]) for k in REPLAY_KEYS})
+
+
+def read_replay(path: str | Path) -> ReplayResult:
+    arrays = _load(Path(path), REPLAY_KEYS)
+    return ReplayResult({k: arrays[k] for k in REPLAY_KEYS})
 
 
 # -------------------------------------------------------------------------------- metrics

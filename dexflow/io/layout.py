@@ -14,6 +14,8 @@ A project::
     data/refine/                 sequences/<name>.npz (refined trajectories)
     data/simulate/<label>/       sequences/<name>.npz (grasp tests; labels baseline, retarget,
                                  refine)
+    data/replay/<label>/         sequences/<name>.npz (trajectories replayed with the object
+                                 free; labels as simulate's)
     data/metrics/                sequences/<name>.npz (per-frame metrics), sequences.csv
     reports/metrics/<stage>.json deterministic stage metrics (DVC metrics)
     reports/timing/<stage>.json  wall-clock speeds, kept apart from the metrics
@@ -207,6 +209,10 @@ class Layout:
     def simulate(self, label: str) -> StageDir:
         """Stage simulate's output for the trajectories labelled ``label``."""
         return StageDir(self.root / "data" / "simulate" / label)
+
+    def replay(self, label: str) -> StageDir:
+        """Stage replay's output for the trajectories labelled ``label``."""
+        return StageDir(self.root / "data" / "replay" / label)
 
     @property
     def metrics(self) -> StageDir:
