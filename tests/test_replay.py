@@ -191,3 +191,38 @@ def test_spider_success_alone_passes_an_object_left_behind_carried_does_not():
         assert result["spider_success"], end
         assert result["carried"] is carried and result["success"] is carried, end
         assert result["static_error_final_m"] == pytest.approx(0.2)
+
+
+def test_report_section_tabulates_each_method_and_plots_the_error(tmp_path):
+    """The summary's replay section: one row per replayed method with its rates, and the mean
+    object error over time drawn from the sequences that were replayed (not the others)."""
+    from dexflow.io.artifacts import ReplayResult, write_replay
+    from dexflow.io.atomic import save_json
+    from dexflow.report import _replay_section
+
+    root = tmp_path / "replay" / "refine"
+    (root / "sequences").mkdir(parents=True)
+    n = 6
+    rows = {
+        "frame": np.arange(n) + 3,
+        "position_error_m": np.linspace(0.0, 0.05, n),
+        "rotation_error_rad": np.zeros(n),
+        "object_position": np.zeros((n, 3)),
+        "object_quat": np.tile([1.0, 0, 0, 0], (n, 1)),
+        "base_error_m": np.zeros(n),
+        "joint_error_rad": np.zeros(n),
+    }
+    write_replay(root / "sequences" / "a.npz", ReplayResult(rows))
+    sequences = {
+        "a": {"status": "ok", "replayed": True, "first_contact": 5},
+        "b": {"status": "ok", "replayed": False},
+    }
+    save_json(root / "summary.json", {"sequences": sequences})
+    refine = {"num_replayed": 1, "success_rate": 100.0, "spider_success_rate": 100.0,
+              "carried_rate": 0.0, "position_error_mean_m": 0.031, "lost_rate": 0.0}  # fmt: skip
+    stage = {"replay_refine": refine, "replay_baseline": {}}
+    lines = _replay_section(stage, {"refine": root}, tmp_path / "figures", tmp_path / "f")
+    rows_md = [line for line in lines if line.startswith("| DexFlow")]
+    assert len(rows_md) == 1 and "| 1 | 100.0 | 100.0 | 0.0 | 3.1 |" in rows_md[0], rows_md
+    assert (tmp_path / "figures" / "summary_replay.png").stat().st_size > 0
+    assert _replay_section({}, {}, tmp_path / "figures", tmp_path / "f") == []
