@@ -379,7 +379,8 @@ def bench_pipeline(
                 frames = int(result["num_frames"])
             if name.startswith("simulate"):
                 evaluated += int(result["frames_evaluated"])
-        runs.append({"workers": n, "seconds": seconds, "frames": frames, "evaluated": evaluated})
+        runs.append({"workers": n, "seconds": seconds, "frames": frames, "evaluated": evaluated,
+                     "peak_rss_mb": _peak_rss_mb()})  # fmt: skip
         shutil.rmtree(root, ignore_errors=True)
 
     lines = _bench_table(runs, sequences, len(objects))
@@ -395,10 +396,20 @@ def bench_pipeline(
     return runs
 
 
+def _peak_rss_mb() -> float:
+    """The largest resident set (MiB) of this process or any finished worker so far."""
+    import resource
+
+    usage = [
+        resource.getrusage(w).ru_maxrss for w in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+    ]
+    return max(usage) / 1024  # Linux reports KiB
+
+
 def _pipeline_stages(params, layout) -> list[tuple[str, Callable[[], dict]]]:
     """Every stage of ``dvc.yaml`` as (name, call) on the project ``layout``, in its order:
     the stage specs the stage scripts run, with the same arguments (``foreach`` items)."""
-    from dexflow import align, contact, metrics, refine, retarget, simulate
+    from dexflow import align, contact, metrics, refine, replay, retarget, simulate
     from dexflow.data.demo import generate_demo
     from dexflow.io.layout import TRAJECTORIES
     from dexflow.runner import run_stage
@@ -407,6 +418,7 @@ def _pipeline_stages(params, layout) -> list[tuple[str, Callable[[], dict]]]:
     steps += [(retarget.STAGE, (method,)) for method in ("dexflow", "position")]
     steps += [(contact.STAGE, ()), (refine.STAGE, ())]
     steps += [(simulate.STAGE, (label,)) for label in TRAJECTORIES]
+    steps += [(replay.STAGE, (label,)) for label in TRAJECTORIES]
     steps += [(metrics.STAGE, ())]
 
     def call(spec, args) -> Callable[[], dict]:
@@ -456,6 +468,8 @@ def _bench_table(runs: list[dict], sequences: int, objects: int) -> list[str]:
     per_object = last["seconds"]["scale_align"] / objects
     per_frame = (totals[-1] - last["seconds"]["scale_align"]) / frames
     estimate = per_frame * PAPER_FRAMES + per_object * 50
+    rss = ", ".join(f"{r['peak_rss_mb']:.0f} MiB ({r['workers']} worker(s))" for r in runs)
+    lines += ["", f"Peak resident memory of one process (the main one or a worker): {rss}."]
     lines += [
         "",
         f"Simulation evaluated {last['evaluated']} frames (stride and early stop) of the "

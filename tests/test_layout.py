@@ -248,3 +248,16 @@ def test_sequence_names_may_hold_dots(tmp_path):
         stage.sequence(tmp_path / "x" / "take.001.npz") == tmp_path / "sequences" / "take.001.npz"
     )
     assert stage.sequence("take.001") != stage.sequence("take.002")
+
+
+def test_bench_runs_every_dvc_stage_in_dvc_order(stages, tmp_path):
+    """`dexflow bench pipeline|real` time the pipeline that `dvc repro` runs: the same stages
+    (``foreach`` items expanded), in dvc.yaml's order; only the report is left out."""
+    from dexflow.bench import _pipeline_stages
+    from dexflow.config import load_params
+
+    params = load_params(Path(__file__).parents[1] / "params.yaml")
+    names = [name for name, _ in _pipeline_stages(params, Layout.of("data", root=tmp_path))]
+    dvc = yaml.safe_load((Path(__file__).parents[1] / "dvc.yaml").read_text())
+    assert next(iter(dvc["stages"])) == "demo"  # ``stages`` leaves the demo out: no sequences
+    assert names == ["demo", *(name for name in stages if name != "report")]
