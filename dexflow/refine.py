@@ -254,11 +254,14 @@ def release_hand(
         e.backward()
         return e
 
-    for _ in range(params.release_rounds if rounds is None else rounds):
+    solves = params.release_rounds if rounds is None else rounds
+    for solve in range(solves):
         torch.optim.LBFGS(
             [delta], max_iter=params.release_iterations, line_search_fn="strong_wolfe",
             tolerance_grad=1e-10, tolerance_change=1e-14, history_size=20,
         ).step(closure)  # fmt: skip
+        if solve == solves - 1:
+            break
         with torch.no_grad():
             points, _ = hand.surface(configuration())
             depth = torch.relu(-sdf(transform_points(world_to_obj, points)).amin(-1))
