@@ -63,22 +63,18 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-import torch
 from scipy.spatial.transform import Rotation
 
-from dexflow.hands.robot import RobotHand, cached_hand
+from dexflow.hands.robot import RobotHand
 from dexflow.io.artifacts import (
     ObjectAssets,
     ReplayResult,
-    read_contact,
-    read_trajectory,
     write_replay,
 )
 from dexflow.io.layout import Layout
-from dexflow.io.sequence import load_sequence
+from dexflow.labelled_stage import labelled_output, load_labelled
 from dexflow.mujoco_world import _MOUNT, MujocoGraspWorld, _add_object, _hand_spec
 from dexflow.params import MujocoParams, PipelineParams, ReplayParams, SimulateParams
-from dexflow.resume import StageOutput
 from dexflow.runner import StageSpec
 
 __all__ = ["STAGE", "ReplayWorld", "grasp_window", "replay_errors", "run_replay"]
@@ -432,23 +428,13 @@ def run_replay(params: PipelineParams, layout: Layout, label: str) -> dict:
         The summary (also written to the stage's ``summary.json``), with the wall-clock speed
         under ``timing`` (returned, not written there).
     """
-    source, contacts, aligned = layout.trajectory(label), layout.contact, layout.scale_align
-    out = layout.replay(label)
-    stage = StageOutput(
-        out,
-        f"replay {label}",
-        {"hand": params.hand, "replay": params.replay},
-        inputs=(source, contacts, aligned),
-    )
+    out, aligned = layout.replay(label), layout.scale_align
+    stage = labelled_output("replay", params, layout, label, out)
     files = stage.start()
-    spec, base_dir, rp = params.hand, layout.hand_dir, params.replay
+    rp = params.replay
 
     def one(path: Path) -> dict:
-        torch.set_num_threads(1)
-        hand = cached_hand(spec, base_dir)
-        seq = load_sequence(aligned.sequence(path), data_root=aligned.root)
-        q = read_trajectory(path, hand.joint_names, frames=seq.num_frames).q
-        found = read_contact(contacts.sequence(path), list(hand.spec.fingers), seq.num_frames)
+        hand, seq, q, found = load_labelled(params, layout, path)
         window = grasp_window(found.final, rp.lead_frames)
         if window is None:
             write_replay(out.sequence(path), ReplayResult(_empty_rows()))
@@ -473,14 +459,14 @@ def run_replay(params: PipelineParams, layout: Layout, label: str) -> dict:
         **tally.counts("replay"),
         "method": label,
         "num_replayed": len(replayed),
-        "success_rate": 100 * mean("success") if replayed else float("nan"),
-        "spider_success_rate": 100 * mean("spider_success") if replayed else float("nan"),
-        "carried_rate": 100 * mean("carried") if replayed else float("nan"),
+        "success_rate": 100 * mean("success"),
+        "spider_success_rate": 100 * mean("spider_success"),
+        "carried_rate": 100 * mean("carried"),
         "position_error_mean_m": mean("position_error_mean_m"),
         "rotation_error_mean_rad": mean("rotation_error_mean_rad"),
         "position_error_final_m": mean("position_error_final_m"),
         "held_fraction": mean("held_fraction"),
-        "lost_rate": 100 * mean("lost") if replayed else float("nan"),
+        "lost_rate": 100 * mean("lost"),
         "static_error_mean_m": mean("static_error_mean_m"),
         "static_error_final_m": mean("static_error_final_m"),
         "base_error_mean_m": mean("base_error_mean_m"),

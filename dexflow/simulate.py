@@ -89,23 +89,20 @@ from dexflow.grasp_protocol import (
     perturbations,
     pushed_configuration,
 )
-from dexflow.hands.robot import RobotHand, base_transform, cached_hand
+from dexflow.hands.robot import RobotHand, base_transform
 from dexflow.io.artifacts import (
     ENGINE_KEYS,
     SIMULATION_KEYS,
     ObjectAssets,
     SimulationResult,
-    read_contact,
-    read_trajectory,
     write_simulation,
 )
 from dexflow.io.layout import Layout
-from dexflow.io.sequence import load_sequence
+from dexflow.labelled_stage import labelled_output, load_labelled
 from dexflow.measures import penetration_depth, surface_distances
 from dexflow.mujoco_world import MujocoGraspWorld
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import PipelineParams, SimulateParams
-from dexflow.resume import StageOutput
 from dexflow.runner import StageSpec
 
 __all__ = [
@@ -679,23 +676,13 @@ def run_simulate(params: PipelineParams, layout: Layout, label: str) -> dict:
         The summary (also written to the stage's ``summary.json``), with the wall-clock speed
         under ``timing`` (returned, not written there).
     """
-    source, contacts, aligned = layout.trajectory(label), layout.contact, layout.scale_align
-    out = layout.simulate(label)
-    stage = StageOutput(
-        out,
-        f"simulate {label}",
-        {"hand": params.hand, "simulate": params.simulate},
-        inputs=(source, contacts, aligned),
-    )
+    out, aligned = layout.simulate(label), layout.scale_align
+    stage = labelled_output("simulate", params, layout, label, out)
     files = stage.start()
-    spec, base_dir, sp = params.hand, layout.hand_dir, params.simulate
+    sp = params.simulate
 
     def one(path: Path) -> dict:
-        torch.set_num_threads(1)
-        hand = cached_hand(spec, base_dir)
-        seq = load_sequence(aligned.sequence(path), data_root=aligned.root)
-        q = read_trajectory(path, hand.joint_names, frames=seq.num_frames).q
-        found = read_contact(contacts.sequence(path), list(hand.spec.fingers), seq.num_frames)
+        hand, seq, q, found = load_labelled(params, layout, path)
         worlds = {engine: _world(engine, hand, sp) for engine in sp.engines}
         assets = ObjectAssets(aligned.object_of(seq.obj_mesh))
         for world in worlds.values():
