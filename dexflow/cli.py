@@ -14,8 +14,10 @@ Subcommands:
   view SEQUENCE [--trajectory T] [--open]
                                     write a rerun recording (.rrd) of a sequence
   report summary                    reports/summary.md from the metrics (the `report` stage)
+  report ablation --suite paper [--set KEY=VALUE ...] [--no-run]
+                                    run the suite's named experiments, reports/ablation.md
   report ablation [--dvc] [--rev REV | --all-commits] [--multirun DIR ...]
-                                    reports/ablation.md across experiments
+                                    reports/sweep.md across DVC experiments or a multirun
 """
 
 from __future__ import annotations
@@ -246,6 +248,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
         out = report.write_project_summary(Layout(), out_md=args.out)
         print(f"wrote {out}")
         return 0
+    if args.suite:
+        return _ablation_suite(args)
     experiments = []
     use_dvc = args.dvc or not args.multirun
     if use_dvc:
@@ -267,10 +271,41 @@ def _cmd_report(args: argparse.Namespace) -> int:
     if not experiments:
         logging.error("no experiments found (dvc exp show and --multirun directories are empty)")
         return 1
-    out = Path(args.out) if args.out else Layout().reports / "ablation.md"
+    out = Path(args.out) if args.out else Layout().reports / "sweep.md"
     out = report.write_ablation(experiments, out, out.parent / "figures")
     print(f"wrote {out} ({len(experiments)} experiments)")
     return 0
+
+
+def _ablation_suite(args: argparse.Namespace) -> int:
+    """``report ablation --suite NAME``: run (or resume) the suite, then write its report."""
+    from dexflow import ablation
+    from dexflow.config import project_root
+
+    root = project_root()
+    default_out = Path("reports") / "ablation.md"
+    out = Path(args.out) if args.out else default_out
+    jobs = root / "multirun" / out.stem
+    results = ablation.run_suite(args.suite, root, jobs, args.set, run=not args.no_run)
+    default = results[ablation.DEFAULT]
+    data = "data not run yet"
+    if default.status == "complete":
+        sequences = len({row["sequence"] for row in default.rows})
+        frames = int(default.pooled.get("num_frames", 0))
+        from dvc.utils.serialize import load_yaml
+
+        given = load_yaml(jobs / ablation.DEFAULT / "params.yaml")
+        data = (
+            f"`{given['data']['root']}` ({given['data']['name']} data: {sequences} sequences, "
+            f"{frames} frames; hand `{given['hand']['name']}` unless the experiment changes it)"
+        )
+    command = ablation.suite_command(args.suite, args.set, out, default_out)
+    path = ablation.write_suite_report(args.suite, results, root / out, command, data)
+    counts = {
+        s: sum(r.status == s for r in results.values()) for s in ("complete", "failed", "queued")
+    }
+    print(f"wrote {path} ({', '.join(f'{n} {s}' for s, n in counts.items())}); runs in {jobs}")
+    return 0 if counts["failed"] == 0 and counts["queued"] == 0 else 1
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
@@ -385,6 +420,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("report", help="generate reports/summary.md or reports/ablation.md")
     p.add_argument("what", choices=["summary", "ablation"])
+    p.add_argument(
+        "--suite", choices=["paper"],
+        help="ablation: run the suite's named experiments (conf/experiment) in "
+        "multirun/<out name>/, resuming finished ones, and write one table per question",
+    )  # fmt: skip
+    p.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE",
+        help="--suite: a Hydra override for every experiment (repeatable), e.g. --set data=custom",
+    )  # fmt: skip
+    p.add_argument("--no-run", action="store_true", help="--suite: only write the report")
     p.add_argument("--dvc", action="store_true", help="ablation: read `dvc exp show --json`")
     p.add_argument(
         "--all-commits", action="store_true", help="ablation: experiments of all commits"

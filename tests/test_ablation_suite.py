@@ -1,0 +1,177 @@
+"""The ablation suite: its report from fake experiment directories (complete, failed, queued),
+the paired statistics it reads differences with, and resuming finished experiments."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dexflow import ablation
+from dexflow.ablation import DEFAULT, compare, load_result, suite_experiments, write_suite_report
+from dexflow.io.layout import Layout
+
+COLUMNS = ["sequence", "object", "hand", "method", "frames", "keypoint_error_mm",
+           "fingertip_error_mm", "velocity_kl", "rms_acc", "pd_mm", "pd_max_mm", "cd_mm",
+           "spd_mm", "ssr"]  # fmt: skip
+
+
+def _job(root: Path, name: str, values: dict[str, dict[str, list[float]]], pooled=None) -> Path:
+    """A finished experiment directory: ``values[method][metric]`` per sequence."""
+    job = root / name
+    layout = Layout(root=job)
+    layout.metrics_table.parent.mkdir(parents=True)
+    rows = []
+    for method, metrics in values.items():
+        n = len(next(iter(metrics.values())))
+        for i in range(n):
+            row = {c: "0" for c in COLUMNS}
+            row.update(sequence=f"seq{i}", object="box", hand="shadow", method=method, frames="90")
+            row.update({m: repr(float(v[i])) for m, v in metrics.items()})
+            rows.append(row)
+    with layout.metrics_table.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    (layout.reports / "metrics").mkdir(parents=True)
+    (layout.reports / "metrics" / "metrics.json").write_text(json.dumps(pooled or {}))
+    (job / "sweep_status.json").write_text(json.dumps({"status": "ok"}))
+    return job
+
+
+def _failed(root: Path, name: str) -> Path:
+    job = root / name
+    job.mkdir(parents=True)
+    status = {"status": "failed", "stage": "refine", "error": "exit status 1: MemoryError"}
+    (job / "sweep_status.json").write_text(json.dumps(status))
+    return job
+
+
+def test_the_paired_interval_is_students_t_over_the_per_sequence_differences(tmp_path):
+    base = [1.0, 2.0, 3.0, 4.0]
+    moved = [1.5, 2.4, 3.6, 4.5]  # +0.5, +0.4, +0.6, +0.5: a small but consistent shift
+    a = load_result(_job(tmp_path, "a", {"refine": {"pd_mm": base}}))
+    b = load_result(_job(tmp_path, "b", {"refine": {"pd_mm": moved}}))
+    c = compare(a, b, "refine", "pd_mm")
+    diff = np.subtract(moved, base)
+    assert c.n == 4 and c.default == pytest.approx(2.5) and c.value == pytest.approx(3.0)
+    assert c.delta == pytest.approx(0.5)
+    # t(0.975, 3) = 3.182: the interval of a mean of 4 paired differences
+    assert c.half_width == pytest.approx(3.1824 * diff.std(ddof=1) / 2, rel=1e-3)
+    assert c.resolved  # the spread between sequences (1 to 4 mm) does not hide a paired shift
+    noisy = load_result(_job(tmp_path, "n", {"refine": {"pd_mm": [2.0, 1.0, 4.5, 3.5]}}))
+    assert not compare(a, noisy, "refine", "pd_mm").resolved  # +1, −1, +1.5, −0.5
+    assert compare(a, b, "retarget", "pd_mm") is None  # no common sequences for that method
+
+
+def test_sequences_are_paired_by_name_and_missing_values_are_left_out(tmp_path):
+    a = load_result(_job(tmp_path, "a", {"refine": {"cd_mm": [1.0, 2.0, 3.0]}}))
+    b = load_result(_job(tmp_path, "b", {"refine": {"cd_mm": [1.0, float("nan")]}}))
+    c = compare(a, b, "refine", "cd_mm")
+    assert (c.n, c.delta) == (1, 0.0) and math.isnan(c.half_width) and not c.resolved
+
+
+def test_report_of_complete_failed_and_queued_experiments(tmp_path):
+    runs = tmp_path / "multirun"
+    rng = np.random.default_rng(0)
+    n = 8
+    base = {
+        m: list(rng.uniform(1, 5, n))
+        for m in ("keypoint_error_mm", "fingertip_error_mm", "rms_acc", "velocity_kl", "pd_mm")
+    }
+    default = {"retarget": base, "refine": base}
+    no_temporal = {
+        method: {**base, "rms_acc": [v * 4 + 1 for v in base["rms_acc"]]}  # clearly worse
+        | {"keypoint_error_mm": list(np.add(base["keypoint_error_mm"], rng.normal(0, 1, n)))}
+        for method in ("retarget", "refine")
+    }
+    pooled = {"contact": {"precision": 0.9}}
+    results = {
+        DEFAULT: load_result(_job(runs, DEFAULT, default, pooled)),
+        "no_temporal": load_result(_job(runs, "no_temporal", no_temporal)),
+        "global_search_off": load_result(_failed(runs, "global_search_off")),
+        # every other experiment of the suite: no directory yet (queued)
+    }
+    results |= {n: load_result(runs / n) for n in suite_experiments("paper") if n not in results}
+    out = write_suite_report("paper", results, tmp_path / "ablation.md", "dexflow x", "the demo")
+    text = out.read_text()
+
+    temporal = text.split("## What do the temporal terms buy?")[1].split("\n## ")[0]
+    rows = [r for r in temporal.splitlines() if r.startswith("| `no_temporal`")]
+    assert len(rows) == 2  # one per method
+    cells = [c.strip() for c in rows[0].split("|")[1:-1]]
+    assert cells[:2] == ["`no_temporal`", "retarget"]
+    rms = cells[2 + 2]  # experiment, method, keypoint, fingertip, RMS acc
+    assert rms.startswith("**") and "(+" in rms  # resolved: bold, a positive Δ
+    assert "RMS acc" in temporal and "worse" in temporal.split("**Findings.**")[1]
+    assert "within the spread across sequences" in temporal  # the noisy keypoint error
+    assert len(temporal.splitlines()[2].split("|")) - 2 <= 8  # readable: at most 8 columns
+
+    search = text.split("## What does the global search buy?")[1].split("\n## ")[0]
+    assert (
+        "`global_search_off` (failed)" in search
+        and "`global_search_every_frame` (queued)" in search
+    )
+    experiments = text.split("## Experiments")[1]
+    assert "| `global_search_off` | failed | — | stage refine: exit status 1: MemoryError |" in (
+        experiments
+    )
+    assert (
+        "| `allegro` | queued |" in experiments
+        and f"| `{DEFAULT}` | complete | {n} |" in experiments
+    )
+    assert "Generated by `dexflow x` on the demo." in text
+
+    table = list(csv.DictReader(out.with_suffix(".csv").open()))
+    assert {r["experiment"] for r in table} == {"no_temporal"}
+    rms_rows = [r for r in table if r["metric"] == "rms_acc" and r["method"] == "retarget"]
+    assert rms_rows[0]["resolved"] == "True" and float(rms_rows[0]["delta"]) > 0
+
+
+def test_a_report_without_a_finished_default_says_so(tmp_path):
+    out = write_suite_report("paper", {}, tmp_path / "a.md", "dexflow x", "nothing")
+    text = out.read_text()
+    assert text.count("No numbers: the default is queued") == len(ablation.SUITES["paper"])
+    assert "| `no_temporal` | queued |" in text
+
+
+def test_run_suite_reuses_finished_experiments_and_reruns_changed_or_failed_ones(
+    tmp_path, monkeypatch
+):
+    ran: list[str] = []
+
+    def fake_run_job(cfg, root, job_dir):  # records the call; the pipeline itself is tested
+        job_dir = Path(job_dir)  # in test_sweep.py
+        ran.append(job_dir.name)
+        (job_dir / "params.yaml").write_text((job_dir / "params.composed.yaml").read_text())
+        status = "failed" if job_dir.name == "allegro" else "ok"
+        table = Layout(root=job_dir).metrics_table
+        table.parent.mkdir(parents=True, exist_ok=True)
+        table.write_text(",".join(COLUMNS) + "\n")
+        (job_dir / "sweep_status.json").write_text(json.dumps({"status": status}))
+        return {"status": status}
+
+    monkeypatch.setattr("dexflow.sweep.run_job", fake_run_job)
+    root = Path(__file__).resolve().parents[1]
+    names = suite_experiments("paper")
+    ablation.run_suite("paper", root, tmp_path, ["seed=3"])
+    assert ran == names
+    assert (tmp_path / DEFAULT / "dvc.yaml").resolve() == root / "dvc.yaml"
+    ran.clear()
+    ablation.run_suite("paper", root, tmp_path, ["seed=3"])  # finished ones are not run again
+    assert ran == ["allegro"]  # the failed one is
+    ran.clear()
+    ablation.run_suite("paper", root, tmp_path, ["seed=4"])  # other params: everything again
+    assert ran == names
+    ran.clear()
+    results = ablation.run_suite("paper", root, tmp_path, ["seed=5"], run=False)
+    assert ran == [] and results["allegro"].status == "failed"
+
+
+def test_an_unknown_suite_is_named():
+    with pytest.raises(KeyError, match="unknown ablation suite 'nope'; known: paper"):
+        suite_experiments("nope")
