@@ -36,7 +36,7 @@ from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.io.artifacts import ContactResult, ObjectAssets, read_trajectory, write_contact
 from dexflow.io.layout import Layout, StageDir
 from dexflow.io.sequence import load_sequence
-from dexflow.measures import contact_counts, precision_recall, state_flicker
+from dexflow.measures import contact_counts, frame_chunks, precision_recall, state_flicker
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import ContactParams, PipelineParams
 from dexflow.resume import StageOutput
@@ -153,6 +153,18 @@ def state_changes(state: np.ndarray) -> np.ndarray:
     return np.abs(np.diff(np.asarray(state, dtype=int), axis=0)).sum(axis=0)
 
 
+def _empty_contact_map() -> dict[str, np.ndarray]:
+    empty = np.zeros((0, 3))
+    return {
+        "map_frame": np.zeros(0, int),
+        "map_finger": np.zeros(0, int),
+        "map_hand_index": np.zeros(0, int),
+        "map_hand_point": empty,
+        "map_object_point": empty,
+        "map_object_normal": empty,
+    }
+
+
 def _contact_map(local, dist, final, masks, surface_tree, surface_normals, k):
     rows = []
     for f, mask in enumerate(masks):
@@ -161,15 +173,7 @@ def _contact_map(local, dist, final, masks, surface_tree, surface_normals, k):
             order = idx[np.argsort(dist[t, idx])[:k]]
             rows.append((t, f, order))
     if not rows:
-        empty = np.zeros((0, 3))
-        return {
-            "map_frame": np.zeros(0, int),
-            "map_finger": np.zeros(0, int),
-            "map_hand_index": np.zeros(0, int),
-            "map_hand_point": empty,
-            "map_object_point": empty,
-            "map_object_normal": empty,
-        }
+        return _empty_contact_map()
     frame = np.concatenate([np.full(len(o), t) for t, _, o in rows])
     finger = np.concatenate([np.full(len(o), f) for _, f, o in rows])
     index = np.concatenate([o for *_, o in rows])
@@ -195,21 +199,40 @@ def contact_sequence(
     sdf = assets.sdf()
     points, normals = assets.surface()
     tree = cKDTree(points)
-    distance, dist, local = finger_distances(hand, q, seq.obj_pose, sdf)
     masks = list(hand.finger_point_masks.values())
-    closest = np.stack(
-        [local[np.arange(len(q)), np.where(m, dist, np.inf).argmin(axis=1)] for m in masks], 1
-    )
+    # Two passes over chunks of frames, so that memory is bounded by a chunk: the per-finger
+    # distances and closest points first (the states need every frame), then the contact map.
+    distance = np.zeros((len(q), len(masks)))
+    closest = np.zeros((len(q), len(masks), 3))
+    chunks = frame_chunks(len(q))
+    for frames in chunks:
+        distance[frames], dist, local = finger_distances(hand, q[frames], seq.obj_pose[frames], sdf)
+        rows = np.arange(len(local))[:, None]
+        nearest = np.stack([np.where(m, dist, np.inf).argmin(axis=1) for m in masks], axis=1)
+        closest[frames] = local[rows, nearest]
     world = transform_points(seq.obj_pose, closest)
     guard = _guard(world, seq.obj_pose[:, :3, 3], seq.fps, params)
     raw, final = contact_states(distance, seq.fps, params, guard)
+    parts = []
+    for frames in chunks:
+        if not final[frames].any():
+            continue
+        _, dist, local = finger_distances(hand, q[frames], seq.obj_pose[frames], sdf)
+        part = _contact_map(local, dist, final[frames], masks, tree, normals, params.map_points)
+        part["map_frame"] = part["map_frame"] + frames.start
+        parts.append(part)
+    contact_map = _empty_contact_map()
+    if parts:  # by finger, then frame: the same map whatever the chunks
+        joined = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        order = np.argsort(joined["map_finger"], kind="stable")
+        contact_map = {k: v[order] for k, v in joined.items()}
     result = ContactResult(
         distance_m=distance,
         raw=raw,
         final=final,
         fingers=list(hand.spec.fingers),
         fps=seq.fps,
-        contact_map=_contact_map(local, dist, final, masks, tree, normals, params.map_points),
+        contact_map=contact_map,
     )
     threshold = distance < params.dis_min_m  # a single threshold, for comparison
     stats = {

@@ -18,10 +18,14 @@ if TYPE_CHECKING:
     from dexflow.objects.sdf import SignedDistanceGrid
 
 __all__ = [
+    "FRAME_CHUNK",
     "contact_counts",
     "contact_distance",
+    "finger_minimum",
     "fingertip_speeds",
     "finite_mean",
+    "frame_chunks",
+    "hand_object_depths",
     "penetration_depth",
     "precision_recall",
     "rms_acceleration",
@@ -29,6 +33,36 @@ __all__ = [
     "surface_distances",
     "velocity_kl",
 ]
+
+
+# Frames per batch where per-frame work on the hand's surface points (about 2,000 points, tens of
+# kB per frame for each intermediate array) would otherwise make memory grow with the length of
+# a sequence: a 10-minute capture is 18,000 frames.
+FRAME_CHUNK = 256
+
+
+def frame_chunks(num_frames: int, size: int = FRAME_CHUNK) -> list[slice]:
+    """Consecutive slices of at most ``size`` frames covering ``range(num_frames)``."""
+    return [slice(a, min(a + size, num_frames)) for a in range(0, num_frames, size)]
+
+
+def finger_minimum(distances: np.ndarray, masks) -> np.ndarray:
+    """(T, N) point distances -> (T, F) smallest distance of each finger's points (``masks``)."""
+    return np.stack([np.where(m, distances, np.inf).min(axis=1) for m in masks], axis=1)
+
+
+def hand_object_depths(
+    hand: RobotHand, q: np.ndarray, obj_pose: np.ndarray, sdf: SignedDistanceGrid
+) -> tuple[np.ndarray, np.ndarray]:
+    """Penetration depth (T,) (:func:`penetration_depth`) and each finger's smallest signed
+    distance (T, F) (fingers in the hand config's order), over :func:`frame_chunks`."""
+    masks = list(hand.finger_point_masks.values())
+    depth, per_finger = np.zeros(len(q)), np.zeros((len(q), len(masks)))
+    for frames in frame_chunks(len(q)):
+        distances, _ = surface_distances(hand, q[frames], obj_pose[frames], sdf)
+        depth[frames] = penetration_depth(distances)
+        per_finger[frames] = finger_minimum(distances, masks)
+    return depth, per_finger
 
 
 def surface_distances(

@@ -75,11 +75,11 @@ from dexflow.measures import (
     contact_distance,
     fingertip_speeds,
     finite_mean,
-    penetration_depth,
+    frame_chunks,
+    hand_object_depths,
     precision_recall,
     rms_acceleration,
     state_flicker,
-    surface_distances,
     velocity_kl,
 )
 from dexflow.objects.sdf import SignedDistanceGrid
@@ -187,10 +187,13 @@ class SelfCollision:
 
     def __call__(self, q: np.ndarray) -> np.ndarray:
         """(T,) self-penetration depth (m) of configurations ``q (T, dof)``."""
-        q, cache = np.asarray(q), {}
+        q = np.asarray(q)
         out = np.zeros(len(q))
-        for s, mask in enumerate(self.masks):
-            out = np.maximum(out, self._depths(q, s, mask, cache).max(axis=1))
+        for frames in frame_chunks(len(q)):  # memory bounded by a chunk, not the sequence
+            cache: dict = {}
+            for s, mask in enumerate(self.masks):
+                depth = self._depths(q[frames], s, mask, cache).max(axis=1)
+                out[frames] = np.maximum(out[frames], depth)
         return out
 
 
@@ -240,10 +243,7 @@ def trajectory_metrics(
     chamfer = np.full(len(q), np.nan)
     if observed.any():
         chamfer[observed] = chamfer_per_frame(human[observed], robot[observed])
-    distances, _ = surface_distances(hand, q, obj_pose, sdf)
-    masks = list(hand.finger_point_masks.values())
-    per_finger = np.stack([np.where(m, distances, np.inf).min(axis=1) for m in masks], axis=1)
-    pd = penetration_depth(distances)
+    pd, per_finger = hand_object_depths(hand, q, obj_pose, sdf)
     cd = contact_distance(per_finger, contact)
     spd = self_collision(hand)(q)
     joints = q[:, 6:]

@@ -371,6 +371,8 @@ class RefineParams:
     release_iterations: int = 60
     release_rounds: int = 3
     release_depth_m: float = 0.004
+    window_frames: int = 400
+    window_overlap: int = 40
 
 
 ENGINES = ("pybullet", "mujoco")
@@ -680,6 +682,14 @@ def validate(params: PipelineParams) -> PipelineParams:
                 "release_depth_m"):  # fmt: skip
         _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
     _require(r.release_rounds >= 1, "refine.release_rounds", ">= 1", r.release_rounds)
+    _require(r.window_frames >= 0, "refine.window_frames", ">= 0 (0: no windows)", r.window_frames)
+    if r.window_frames:
+        _require(
+            2 <= r.window_overlap <= r.window_frames // 2,
+            "refine.window_overlap",
+            f"2 to window_frames / 2 = {r.window_frames // 2}",
+            r.window_overlap,
+        )
     _check_numbers(params.simulate, "simulate")
     _validate_simulate(params.simulate)
     _validate_replay(params.replay)

@@ -69,7 +69,9 @@ from dexflow.io.layout import Layout
 from dexflow.io.sequence import load_sequence
 from dexflow.measures import (
     contact_distance,
+    finger_minimum,
     finite_mean,
+    frame_chunks,
     penetration_depth,
     rms_acceleration,
     surface_distances,
@@ -129,23 +131,22 @@ def hand_object_measures(
       different fingers (subsampled): what E_spen penalises, not the link self-penetration of
       the metrics stage's ``spd_mm``.
     """
-    distances, points = surface_distances(hand, q, obj_pose, sdf)
     masks = list(hand.finger_point_masks.values())
-    per_finger = np.stack([np.where(m, distances, np.inf).min(axis=1) for m in masks], axis=1)
-    overlap = np.zeros(len(q))
     rng = np.random.default_rng(0)
     picks = [
         rng.choice(np.flatnonzero(m), min(48, m.sum()), replace=False) for m in masks if m.any()
     ]
-    for i in range(len(picks)):
-        for j in range(i + 1, len(picks)):
-            d = np.linalg.norm(points[:, picks[i], None] - points[:, None, picks[j]], axis=-1)
-            overlap = np.maximum(overlap, np.clip(spen_delta_m - d.min(axis=(1, 2)), 0, None))
-    return {
-        "pd": penetration_depth(distances),
-        "cd": contact_distance(per_finger, contact),
-        "finger_overlap": overlap,
-    }
+    pd, per_finger, overlap = np.zeros(len(q)), np.zeros((len(q), len(masks))), np.zeros(len(q))
+    for frames in frame_chunks(len(q)):  # memory bounded by a chunk, not the sequence
+        distances, points = surface_distances(hand, q[frames], obj_pose[frames], sdf)
+        pd[frames] = penetration_depth(distances)
+        per_finger[frames] = finger_minimum(distances, masks)
+        for i in range(len(picks)):
+            for j in range(i + 1, len(picks)):
+                d = np.linalg.norm(points[:, picks[i], None] - points[:, None, picks[j]], axis=-1)
+                gap = np.clip(spen_delta_m - d.min(axis=(1, 2)), 0, None)
+                overlap[frames] = np.maximum(overlap[frames], gap)
+    return {"pd": pd, "cd": contact_distance(per_finger, contact), "finger_overlap": overlap}
 
 
 def refine_trajectory(
@@ -159,9 +160,45 @@ def refine_trajectory(
 ):
     """Refine a trajectory ``q_init (T, dof)`` against contacts ``(T, F)`` and their map.
 
+    A sequence longer than ``params.window_frames`` is refined in windows of that many frames
+    overlapping by ``params.window_overlap``: each window is refined on its own and the shared
+    frames are cross-faded (a linear ramp from one window's result to the next), so that memory
+    is bounded by the window whatever the length. Shorter sequences are refined whole.
+
     Returns:
         refined q (T, dof), per-frame energies before and after (T,).
     """
+    n, window = len(q_init), params.window_frames
+    if window <= 0 or n <= window:
+        return _refine_whole(hand, q_init, obj_pose, sdf, contact, cmap, params)
+    overlap = params.window_overlap
+    q = np.zeros_like(q_init, dtype=float)
+    energy_before, energy_after = np.zeros(n), np.zeros(n)
+    starts = list(range(0, n - overlap, window - overlap))
+    for i, a in enumerate(starts):
+        b = n if i == len(starts) - 1 else min(a + window, n)
+        part = dict(cmap)  # the contact map's rows of this window, frames counted from a
+        if "map_frame" in cmap:
+            rows = (cmap["map_frame"] >= a) & (cmap["map_frame"] < b)
+            part = {k: v[rows] for k, v in cmap.items()}
+            part["map_frame"] = part["map_frame"] - a
+        qw, e0, e1 = _refine_whole(
+            hand, q_init[a:b], obj_pose[a:b], sdf, contact[a:b], part, params
+        )
+        # weight of this window's result: 1 inside, a ramp over the frames shared with the last
+        ramp = np.ones(b - a)
+        if i > 0:
+            ramp[:overlap] = np.arange(1, overlap + 1) / (overlap + 1)
+        q[a:b] = (1 - ramp[:, None]) * q[a:b] + ramp[:, None] * qw
+        energy_before[a:b] = (1 - ramp) * energy_before[a:b] + ramp * e0
+        energy_after[a:b] = (1 - ramp) * energy_after[a:b] + ramp * e1
+    with torch.no_grad():  # a blend of two valid poses: limits hold, ties restored
+        q = hand.clamp(hand.apply_couplings(torch.as_tensor(q, dtype=hand.dtype))).numpy()
+    return q, energy_before, energy_after
+
+
+def _refine_whole(hand, q_init, obj_pose, sdf, contact, cmap, params):
+    """:func:`refine_trajectory` of one window (or a whole short sequence)."""
     fingers = list(hand.spec.fingers)
     inv = torch.as_tensor(np.linalg.inv(obj_pose), dtype=hand.dtype)
     q_start = q_init

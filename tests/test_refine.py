@@ -244,3 +244,34 @@ def test_release_moves_the_palm_before_the_fingertips(allegro):
     assert tips < 0.4 * rest
     _, tips_equal, _ = _release_palm(allegro, 0.01, release_tip_weight=1.0)
     assert tips_equal > 2 * tips
+
+
+def test_long_sequences_are_refined_in_cross_faded_windows(allegro):
+    """A sequence longer than window_frames is refined in overlapping windows (bounded memory):
+    every frame still freed, no step at the seams, close to refining it whole; a sequence no
+    longer than one window is refined whole, exactly as with windows off."""
+    q, pose, grid = _palm_scene(allegro, 0.006, frames=30)
+    contact = np.zeros((len(q), 4), dtype=bool)
+    whole, _, _ = refine_trajectory(
+        allegro, q, pose, TorchSDF(grid), contact, {}, RefineParams(window_frames=0)
+    )
+    windowed, e0, e1 = refine_trajectory(
+        allegro, q, pose, TorchSDF(grid), contact, {},
+        RefineParams(window_frames=16, window_overlap=8),
+    )  # fmt: skip
+    assert windowed.shape == q.shape and e0.shape == e1.shape == (30,)
+    assert np.all(_depth(allegro, windowed, pose, grid) < 0.0005)
+    assert np.abs(windowed - whole).max() < 0.005  # rad / m: the same solution, nearly
+    steps = np.abs(np.diff(windowed, axis=0)).max(axis=1)
+    smooth = np.abs(np.diff(whole, axis=0)).max(axis=1)
+    assert steps.max() < 1.5 * smooth.max(), (steps, smooth)  # no jump where windows meet
+    lo, hi = allegro.lower.numpy(), allegro.upper.numpy()
+    assert np.all(windowed >= lo - 1e-12) and np.all(windowed <= hi + 1e-12)
+    short, _, _ = refine_trajectory(
+        allegro, q[:12], pose[:12], TorchSDF(grid), contact[:12], {},
+        RefineParams(window_frames=12, window_overlap=4),
+    )  # fmt: skip
+    alone, _, _ = refine_trajectory(
+        allegro, q[:12], pose[:12], TorchSDF(grid), contact[:12], {}, RefineParams(window_frames=0)
+    )
+    assert np.array_equal(short, alone)
