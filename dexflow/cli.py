@@ -9,7 +9,7 @@ Subcommands:
   hand init MODEL [--side S] [-o Y] propose a hand yaml from a URDF or MJCF model
   hand check NAME|YAML [--png P]    validate a hand, print its kinematic tree, draw its zero pose
   hand export NAME|YAML OUT.urdf    write an MJCF hand as a URDF (for pybullet)
-  bench fk|retarget|refine|simulate|pipeline|real
+  bench fk|retarget|refine|simulate|pipeline|real|long
                                     throughput benchmarks (frames/s against baselines)
   view SEQUENCE [--trajectory T] [--open]
                                     write a rerun recording (.rrd) of a sequence
@@ -206,6 +206,7 @@ def _cmd_hand_export(args: argparse.Namespace) -> int:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from dexflow.bench import (
         bench_fk,
+        bench_long,
         bench_pipeline,
         bench_real,
         bench_refine,
@@ -220,6 +221,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             args.root, args.hands or None, args.jobs, args.subset, args.work, args.out_real,
             overrides=args.set,
         )  # fmt: skip
+    elif args.what == "long":
+        bench_long(tuple(int(n) for n in args.frames.split(",")), args.out_long)
     elif args.what == "pipeline":
         workers = tuple(int(w) for w in args.workers.split(","))
         bench_pipeline(args.sequences, workers, args.out)
@@ -401,7 +404,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_hand_export)
 
     p = sub.add_parser("bench", help="benchmarks (print frames/s)")
-    p.add_argument("what", choices=["fk", "retarget", "refine", "simulate", "pipeline", "real"])
+    p.add_argument(
+        "what", choices=["fk", "retarget", "refine", "simulate", "pipeline", "real", "long"]
+    )
     p.add_argument("root", nargs="?", help="real: root of converted sequences (dexflow convert)")
     p.add_argument("--workers", default="1,2", help="pipeline: worker counts, e.g. 1,2")
     p.add_argument("--out", default="reports/bench.md", help="pipeline: report file")
@@ -412,6 +417,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=int, default=2, help="real: worker processes")
     p.add_argument("--work", help="real: keep the stage outputs here (default: a temp dir)")
     p.add_argument("--out-real", default="reports/real.md", help="real: report file")
+    p.add_argument("--frames", default="600,2400", help="long: sequence lengths, e.g. 600,2400")
+    p.add_argument("--out-long", default="reports/bench_long.md", help="long: report file")
     p.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE",
         help="real: a Hydra override of the defaults (repeatable), e.g. --set simulate=both",

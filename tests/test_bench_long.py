@@ -1,0 +1,43 @@
+"""`dexflow bench long`: the long sequence it builds and the table it writes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dexflow.bench import _long_sequence, _long_table
+from dexflow.io.sequence import load_sequence, save_sequence
+
+from .conftest import make_sequence
+
+
+def test_a_long_sequence_plays_a_recorded_one_forward_and_backward(tmp_path, data_root):
+    seq = make_sequence(10)
+    seq.valid = np.arange(10) != 3
+    seq.extras = {"gt_tracking_lost": np.arange(10) == 5, "grasp": np.array("power")}
+    (data_root / "sequences").mkdir()
+    save_sequence(data_root / "sequences" / "s.npz", seq, data_root)
+    root = _long_sequence(data_root, 25, tmp_path / "long")
+    long = load_sequence(root / "sequences" / "long_25.npz", root)  # valid, and its mesh found
+    index = np.concatenate([np.arange(10), np.arange(10)[::-1], np.arange(5)])
+    assert long.num_frames == 25
+    assert np.array_equal(long.keypoints, seq.keypoints[index])  # no jump where it turns
+    assert np.array_equal(long.obj_pose, seq.obj_pose[index])
+    assert np.array_equal(long.valid, seq.valid[index])
+    assert np.array_equal(long.extras["gt_tracking_lost"], seq.extras["gt_tracking_lost"][index])
+    assert str(long.extras["grasp"]) == "power"  # not per frame: kept as it is
+
+
+def test_the_table_gives_time_and_memory_ratios_and_a_10_minute_estimate():
+    def run(frames, scale):
+        stages = {"contact": {"seconds": 2.0 * scale, "rss_mb": 500.0 + 0.1 * frames},
+                  "refine": {"seconds": 40.0 * scale, "rss_mb": 800.0}}  # fmt: skip
+        return {"frames": frames, "stages": stages}
+
+    lines = _long_table([run(600, 1), run(2400, 4)])
+    text = "\n".join(lines)
+    assert "`dexflow bench long --frames 600,2400`" in text
+    row = next(x for x in lines if x.startswith("| contact |"))
+    assert row.endswith("| 4.0, 1.32 |")  # time x4, memory 560 -> 740 MiB
+    assert "2.0, 300, 560" in row  # s, frames/s, MiB at 600 frames
+    # largest peak 800 -> 800: nothing grows, 18,000 frames stay at 800 MiB
+    assert "800 → 800 MiB, 0 KiB per added frame" in text and "about 800 MiB" in text
