@@ -16,7 +16,9 @@ Per object, computed once whatever the number of sequences using it, at the scal
 - ``mesh.obj``: the scaled mesh;
 - ``sdf.npz``: signed distance grid (winding-number sign, correct for meshes with holes);
 - ``surface.npz``: ``points (N, 3)`` and outward ``normals (N, 3)`` sampled on the surface;
-- ``convex.obj``: CoACD convex decomposition, one ``o`` group per part, for simulation;
+- ``convex.obj``: CoACD convex decomposition, one ``o`` group per part, for simulation (the
+  unscaled mesh's parts, scaled: they come from the object asset cache of
+  :mod:`dexflow.objects.convex` when another run already decomposed the same mesh);
 - ``meta.json``: source mesh, scale, bounds, watertightness, part count.
 
 Output layout below the stage directory: ``sequences/<name>.npz`` (canonical format, its
@@ -40,7 +42,7 @@ from dexflow.io.atomic import save_json, save_npz
 from dexflow.io.layout import Layout, ObjectPaths, StageDir
 from dexflow.io.mirror import mirror_mesh, mirror_sequence
 from dexflow.io.sequence import NEAR_OBJECT_M, Sequence, load_sequence, save_sequence
-from dexflow.objects.convex import convex_decomposition, write_convex_obj
+from dexflow.objects.convex import cached_convex_decomposition, write_convex_obj
 from dexflow.objects.mesh import load_mesh, write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.objects.surface import sample_surface
@@ -110,9 +112,10 @@ def prepare_object(job: ObjectJob, in_root: Path, out: ObjectPaths, params: Pipe
     """Scale one object mesh and write its precomputation to ``out`` (``objects/<key>/``)."""
     cfg = params.scale_align
     scale = params.hand.scale
-    mesh = load_mesh(in_root / job.mesh_rel)
+    unscaled = load_mesh(in_root / job.mesh_rel)
     if job.mirror:
-        mesh = mirror_mesh(mesh)
+        unscaled = mirror_mesh(unscaled)
+    mesh = unscaled.copy()
     mesh.apply_scale(scale)
     write_obj(out.mesh, mesh)
     sdf = SignedDistanceGrid.from_mesh(mesh, spacing=cfg.sdf_spacing_m, padding=cfg.sdf_padding_m)
@@ -120,8 +123,10 @@ def prepare_object(job: ObjectJob, in_root: Path, out: ObjectPaths, params: Pipe
     points, normals = sample_surface(mesh, cfg.surface_samples, sdf, seed=params.seed)
     save_npz(out.surface, {"points": points, "normals": normals})
     c = cfg.convex
-    parts = convex_decomposition(
-        mesh,
+    # CoACD is scale-equivariant: the unscaled mesh's parts (cached by content, so that another
+    # hand's scale or a rerun does not decompose again), scaled
+    parts = cached_convex_decomposition(
+        unscaled,
         threshold=c.threshold,
         max_hulls=c.max_hulls,
         preprocess_resolution=c.preprocess_resolution,
@@ -130,6 +135,8 @@ def prepare_object(job: ObjectJob, in_root: Path, out: ObjectPaths, params: Pipe
         mcts_nodes=c.mcts_nodes,
         seed=params.seed,
     )
+    for part in parts:
+        part.apply_scale(scale)
     write_convex_obj(out.convex, parts)
     meta = {
         "source_mesh": job.mesh_rel,

@@ -38,3 +38,20 @@ def data_root(tmp_path):
     (tmp_path / "meshes").mkdir()
     trimesh.creation.box(extents=(0.06, 0.04, 0.08)).export(tmp_path / "meshes" / "box.obj")
     return tmp_path
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _asset_cache(tmp_path_factory):
+    """Tests (and the stages they start) cache object assets in a folder of their own, never
+    in the user's ``~/.cache/dexflow``."""
+    import os
+
+    from dexflow.objects.convex import CACHE_ENV
+
+    previous = os.environ.get(CACHE_ENV)
+    os.environ[CACHE_ENV] = str(tmp_path_factory.mktemp("asset-cache"))
+    yield
+    if previous is None:
+        os.environ.pop(CACHE_ENV, None)
+    else:
+        os.environ[CACHE_ENV] = previous

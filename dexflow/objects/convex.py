@@ -1,15 +1,41 @@
-"""Convex decomposition of object meshes for physics simulation (CoACD)."""
+"""Convex decomposition of object meshes for physics simulation (CoACD), cached by content.
+
+CoACD is the slowest part of preparing an object (seconds to tens of seconds a mesh) and its
+result is scale-equivariant (the parts of a mesh scaled by s are its parts scaled by s, to
+1e-17 m). :func:`cached_convex_decomposition` therefore keeps the parts of every unscaled mesh
+in a cache keyed by the mesh's vertices and faces, CoACD's settings and version: a second hand
+(another scale), a rerun after a code change or another data root holding the same mesh reads
+them back instead of decomposing again. The cache is ``$DEXFLOW_CACHE`` (``off`` disables it),
+else ``$XDG_CACHE_HOME/dexflow`` or ``~/.cache/dexflow``; deleting it only costs time.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import json
+import logging
+import os
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
-from dexflow.io.atomic import atomic_path
+from dexflow.io.atomic import atomic_path, save_npz
 
-__all__ = ["convex_decomposition", "read_convex_obj", "write_convex_obj"]
+__all__ = [
+    "CACHE_ENV",
+    "asset_cache_dir",
+    "cached_convex_decomposition",
+    "convex_decomposition",
+    "read_convex_obj",
+    "write_convex_obj",
+]
+log = logging.getLogger(__name__)
+
+CACHE_ENV = "DEXFLOW_CACHE"
+# Part of every cache key: raise it when the parts stored for the same mesh and settings would
+# change (a new way of calling CoACD), so that old entries are not read back.
+_CACHE_VERSION = 1
 
 
 def convex_decomposition(
@@ -29,10 +55,28 @@ def convex_decomposition(
     Returns:
         Convex meshes whose union approximates ``mesh``.
     """
+    parts = _coacd_parts(
+        mesh,
+        threshold=threshold,
+        max_hulls=max_hulls,
+        preprocess_resolution=preprocess_resolution,
+        mcts_iterations=mcts_iterations,
+        mcts_max_depth=mcts_max_depth,
+        mcts_nodes=mcts_nodes,
+        seed=seed,
+    )
+    return [trimesh.Trimesh(v, f, process=True) for v, f in parts]
+
+
+def _coacd_parts(
+    mesh, threshold, max_hulls, preprocess_resolution, mcts_iterations, mcts_max_depth,
+    mcts_nodes, seed,
+) -> list[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
+    """CoACD's own (vertices, faces) per part."""
     import coacd
 
     coacd.set_log_level("error")
-    parts = coacd.run_coacd(
+    return coacd.run_coacd(
         coacd.Mesh(
             np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int32)
         ),
@@ -44,6 +88,53 @@ def convex_decomposition(
         mcts_nodes=mcts_nodes,
         seed=seed,
     )
+
+
+def asset_cache_dir() -> Path | None:
+    """Where object assets are cached (module docstring); None when ``$DEXFLOW_CACHE`` is
+    ``off``, ``0``, ``none`` or empty."""
+    value = os.environ.get(CACHE_ENV)
+    if value is not None:
+        return None if value.strip().lower() in ("", "0", "off", "none") else Path(value)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "dexflow"
+
+
+def cached_convex_decomposition(mesh: trimesh.Trimesh, **settings) -> list[trimesh.Trimesh]:
+    """:func:`convex_decomposition` of ``mesh`` with ``settings``, read from the asset cache
+    when it holds them (exactly the parts CoACD returned), else computed and stored there.
+
+    A cache that cannot be written (read-only, full) is skipped with a warning: the parts are
+    still returned.
+    """
+    import coacd
+
+    folder = asset_cache_dir()
+    if folder is None:
+        return convex_decomposition(mesh, **settings)
+    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    key = hashlib.sha256(vertices.tobytes() + faces.tobytes())
+    version = getattr(coacd, "__version__", "unknown")
+    key.update(json.dumps([settings, version, _CACHE_VERSION], sort_keys=True).encode())
+    path = folder / "convex" / f"{key.hexdigest()}.npz"
+    try:
+        with np.load(path) as stored:
+            count = int(stored["count"])
+            parts = [(stored[f"v{i}"], stored[f"f{i}"]) for i in range(count)]
+        log.debug("convex parts of a %d-face mesh read from %s", len(faces), path)
+        return [trimesh.Trimesh(v, f, process=True) for v, f in parts]
+    except (OSError, ValueError, KeyError):
+        pass  # not cached yet (or unreadable): compute and store
+    parts = _coacd_parts(mesh, **settings)
+    arrays = {"count": np.array(len(parts))}
+    for i, (v, f) in enumerate(parts):
+        arrays[f"v{i}"], arrays[f"f{i}"] = np.asarray(v), np.asarray(f)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_npz(path, arrays)
+    except OSError as exc:
+        log.warning("object asset cache %s not written (%s): convex parts not cached", path, exc)
     return [trimesh.Trimesh(v, f, process=True) for v, f in parts]
 
 
