@@ -371,6 +371,7 @@ class RefineParams:
     release_iterations: int = 60
     release_rounds: int = 3
     release_depth_m: float = 0.004
+    release_reach_m: float = 0.03
     window_frames: int = 400
     window_overlap: int = 40
 
@@ -679,7 +680,7 @@ def validate(params: PipelineParams) -> PipelineParams:
     for key in ("w_dis", "w_pen", "w_align", "w_spen", "w_joints", "w_smooth", "learning_rate",
                 "release_w_pen", "release_w_touch", "release_w_track", "release_tip_weight",
                 "release_w_smooth", "release_w_smooth_joints", "release_iterations",
-                "release_depth_m"):  # fmt: skip
+                "release_depth_m", "release_reach_m"):  # fmt: skip
         _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
     _require(r.release_rounds >= 1, "refine.release_rounds", ">= 1", r.release_rounds)
     _require(r.window_frames >= 0, "refine.window_frames", ">= 0 (0: no windows)", r.window_frames)

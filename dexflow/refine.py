@@ -265,16 +265,33 @@ def release_hand(
         q[:, free] = torch.maximum(torch.minimum(q0[:, free] + delta, hi), lo)
         return hand.apply_couplings(q)
 
+    def within_reach() -> tuple[torch.Tensor, torch.Tensor]:
+        """The frames with a surface point within ``release_reach_m`` of the object, and the
+        points within it in any of them: only those can touch it during one solve, so only
+        those enter the penetration and contact terms (the others add exactly 0)."""
+        with torch.no_grad():
+            points, _ = hand.surface(configuration())
+            sd = sdf(transform_points(world_to_obj, points))
+        close = sd < params.release_reach_m
+        frames = torch.nonzero(close.any(-1)).flatten()
+        return frames, torch.nonzero(close[frames].any(0)).flatten()
+
+    near, index = within_reach()
+
     def energy() -> torch.Tensor:
         q = configuration()
         transforms = hand.frame_transforms(q)
-        points, _ = hand.surface(q, transforms)
-        sd = sdf(transform_points(world_to_obj, points))  # (T, N)
-        total = (w_pen * (torch.relu(margin - sd) ** 2).sum(-1)).sum()
-        if touching.any():
-            per_finger = torch.where(masks[None], sd[:, None], torch.inf).amin(-1)  # (T, F)
-            gap = torch.relu(per_finger[touching])
-            total = total + params.release_w_touch * (gap**2).sum()
+        total = q.new_zeros(())
+        if len(near) and len(index):
+            points, _ = hand.surface_points(q[near], index, transforms[near])
+            sd = sdf(transform_points(world_to_obj[near], points))  # (T near, P near)
+            total = (w_pen[near] * (torch.relu(margin - sd) ** 2).sum(-1)).sum()
+            if touching[near].any():
+                mine = masks[:, index]  # (F, P near)
+                per_finger = torch.where(mine[None], sd[:, None], torch.inf).amin(-1)
+                gap = torch.relu(per_finger[touching[near]])
+                gap = torch.where(torch.isfinite(gap), gap, 0.0)  # a finger out of reach
+                total = total + params.release_w_touch * (gap**2).sum()
         change = hand.keypoints(q, transforms) - kp_ref
         total = total + params.release_w_track * ((change**2).sum(-1) * track_w).sum()
         if len(q) > 2:
@@ -306,6 +323,7 @@ def release_hand(
         if not deep.any():
             break
         w_pen = torch.where(deep, w_pen * 10, w_pen)
+        near, index = within_reach()
     with torch.no_grad():
         return hand.clamp(configuration()).numpy()
 

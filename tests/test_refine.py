@@ -275,3 +275,22 @@ def test_long_sequences_are_refined_in_cross_faded_windows(allegro):
         allegro, q[:12], pose[:12], TorchSDF(grid), contact[:12], {}, RefineParams(window_frames=0)
     )
     assert np.array_equal(short, alone)
+
+
+def test_release_reach_leaves_out_only_points_that_add_nothing(allegro):
+    """Only points within release_reach_m of the object (in frames that have any) enter the
+    penetration and contact terms: the same release as with every point, and a hand far from
+    the object is left where it is."""
+    q, pose, grid = _palm_scene(allegro, 0.006, frames=8)
+    far = pose.copy()
+    far[4:, 0, 3] += 0.5  # the last four frames: the object half a metre away
+    contact = np.zeros((len(q), 4), dtype=bool)
+    inv = torch.as_tensor(np.linalg.inv(far))
+    near = release_hand(allegro, q, inv, TorchSDF(grid), contact, RefineParams())
+    every = release_hand(
+        allegro, q, inv, TorchSDF(grid), contact, RefineParams(release_reach_m=10.0)
+    )
+    assert np.abs(near - every).max() < 1e-6
+    assert np.all(_depth(allegro, near[:4], far[:4], grid) < 0.0005)
+    nothing = release_hand(allegro, q[4:], inv[4:], TorchSDF(grid), contact[4:], RefineParams())
+    assert np.abs(nothing - q[4:]).max() < 1e-9

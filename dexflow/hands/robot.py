@@ -276,11 +276,14 @@ class RobotHand:
         local = torch.stack([ret[name].get_matrix() for name in names], dim=1)
         return base_transform(q[:, :6])[:, None] @ local
 
-    def surface_points(self, q, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """World points (B, P, 3) and normals of the surface points ``index (P,)`` only."""
+    def surface_points(
+        self, q, index: torch.Tensor, transforms: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """World points (B, P, 3) and normals of the surface points ``index (P,)`` only
+        (``transforms``: the frames' transforms of ``q`` where already computed)."""
         index = torch.as_tensor(index, dtype=torch.long, device=self.device)
         return _transform_points(
-            self.frame_transforms(q),
+            self.frame_transforms(q) if transforms is None else transforms,
             self._surface_frame[index],
             self._surface_local[index],
             self._surface_normals[index],
