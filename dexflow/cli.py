@@ -225,7 +225,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         bench_long(tuple(int(n) for n in args.frames.split(",")), args.out_long)
     elif args.what == "pipeline":
         workers = tuple(int(w) for w in args.workers.split(","))
-        bench_pipeline(args.sequences, workers, args.out)
+        bench_pipeline(args.sequences, workers, args.out, args.root, args.subset)
     elif args.what == "fk":
         bench_fk(args.hands or None, repeats=args.repeats)
     elif args.what == "simulate":
@@ -407,13 +407,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "what", choices=["fk", "retarget", "refine", "simulate", "pipeline", "real", "long"]
     )
-    p.add_argument("root", nargs="?", help="real: root of converted sequences (dexflow convert)")
+    p.add_argument(
+        "root", nargs="?",
+        help="real (required), pipeline (optional): root of converted sequences (dexflow convert)",
+    )  # fmt: skip
     p.add_argument("--workers", default="1,2", help="pipeline: worker counts, e.g. 1,2")
     p.add_argument("--out", default="reports/bench.md", help="pipeline: report file")
     p.add_argument("--hands", nargs="*")
     p.add_argument("--repeats", type=int, default=20)
-    p.add_argument("--sequences", type=int, default=6, help="retarget: demo sequences to use")
-    p.add_argument("--subset", type=int, default=0, help="real: evenly spaced sequences (0: all)")
+    p.add_argument("--sequences", type=int, default=6, help="retarget, pipeline: demo sequences to use")
+    p.add_argument("--subset", type=int, default=0, help="real, pipeline ROOT: evenly spaced sequences (0: all)")
     p.add_argument("--jobs", type=int, default=2, help="real: worker processes")
     p.add_argument("--work", help="real: keep the stage outputs here (default: a temp dir)")
     p.add_argument("--out-real", default="reports/real.md", help="real: report file")

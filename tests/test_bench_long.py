@@ -41,3 +41,23 @@ def test_the_table_gives_time_and_memory_ratios_and_a_10_minute_estimate():
     assert "2.0, 300, 560" in row  # s, frames/s, MiB at 600 frames
     # largest peak 800 -> 800: nothing grows, 18,000 frames stay at 800 MiB
     assert "800 → 800 MiB, 0 KiB per added frame" in text and "about 800 MiB" in text
+
+
+def test_the_pipeline_table_on_user_data_has_no_demo_row_and_names_the_command():
+    from dexflow.bench import _bench_table
+
+    def run(workers, scale):
+        seconds = {"scale_align": 10.0 * scale, "retarget@dexflow": 2.0 * scale,
+                   "refine": 20.0 * scale}  # fmt: skip
+        return {"workers": workers, "seconds": seconds, "frames": 640, "evaluated": 40,
+                "objects": 4, "peak_rss_mb": 900.0}  # fmt: skip
+
+    lines = _bench_table([run(1, 1.0), run(2, 0.5)], "dexflow bench pipeline /d --workers 1,2", "x")
+    text = "\n".join(lines)
+    assert "`dexflow bench pipeline /d --workers 1,2`: the whole pipeline on x (4 objects" in text
+    assert "| demo |" not in text
+    assert (
+        "| **pipeline (without demo)** | **32.0 s, 20.0 f/s** | **16.0 s, 40.0 f/s** | **2.00x** |"
+        in text
+    )
+    assert "| refine | 20.0 s, 32 f/s, 62 % |" in text
