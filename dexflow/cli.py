@@ -415,8 +415,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="reports/bench.md", help="pipeline: report file")
     p.add_argument("--hands", nargs="*")
     p.add_argument("--repeats", type=int, default=20)
-    p.add_argument("--sequences", type=int, default=6, help="retarget, pipeline: demo sequences to use")
-    p.add_argument("--subset", type=int, default=0, help="real, pipeline ROOT: evenly spaced sequences (0: all)")
+    p.add_argument(
+        "--sequences", type=int, default=6, help="retarget, pipeline: demo sequences to use"
+    )
+    p.add_argument(
+        "--subset",
+        type=int,
+        default=0,
+        help="real, pipeline ROOT: evenly spaced sequences (0: all)",
+    )
     p.add_argument("--jobs", type=int, default=2, help="real: worker processes")
     p.add_argument("--work", help="real: keep the stage outputs here (default: a temp dir)")
     p.add_argument("--out-real", default="reports/real.md", help="real: report file")

@@ -683,6 +683,12 @@ def validate(params: PipelineParams) -> PipelineParams:
                 "release_depth_m", "release_reach_m"):  # fmt: skip
         _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
     _require(r.release_rounds >= 1, "refine.release_rounds", ">= 1", r.release_rounds)
+    _require(
+        r.release_reach_m > r.pen_margin_m,
+        "refine.release_reach_m",
+        f"> refine.pen_margin_m = {r.pen_margin_m} (points beyond it must add nothing)",
+        r.release_reach_m,
+    )
     _require(r.window_frames >= 0, "refine.window_frames", ">= 0 (0: no windows)", r.window_frames)
     if r.window_frames:
         _require(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 import torch
@@ -277,16 +279,26 @@ def test_long_sequences_are_refined_in_cross_faded_windows(allegro):
     assert np.array_equal(short, alone)
 
 
-def test_release_reach_leaves_out_only_points_that_add_nothing(allegro):
-    """Only points within release_reach_m of the object (in frames that have any) enter the
-    penetration and contact terms: the same release as with every point, and a hand far from
-    the object is left where it is."""
+def test_release_reach_leaves_out_only_points_that_add_nothing(allegro, monkeypatch):
+    """Only points within release_reach_m of the object (in frames that have any) and every
+    point of a finger in contact enter the penetration and contact terms: fewer points, the
+    same release as with every point; a hand far from the object is left where it is."""
     q, pose, grid = _palm_scene(allegro, 0.006, frames=8)
     far = pose.copy()
     far[4:, 0, 3] += 0.5  # the last four frames: the object half a metre away
     contact = np.zeros((len(q), 4), dtype=bool)
     inv = torch.as_tensor(np.linalg.inv(far))
+    used: list[tuple[int, torch.Tensor]] = []
+    original = type(allegro).surface_points
+
+    def spy(self, q, index, transforms=None):
+        used.append((len(q), torch.as_tensor(index)))
+        return original(self, q, index, transforms)
+
+    monkeypatch.setattr(type(allegro), "surface_points", spy)
     near = release_hand(allegro, q, inv, TorchSDF(grid), contact, RefineParams())
+    assert max(len(i) for _, i in used) < allegro.num_surface_points  # points left out
+    assert max(t for t, _ in used) == 4  # frames 0-3: the object near
     every = release_hand(
         allegro, q, inv, TorchSDF(grid), contact, RefineParams(release_reach_m=10.0)
     )
@@ -294,3 +306,56 @@ def test_release_reach_leaves_out_only_points_that_add_nothing(allegro):
     assert np.all(_depth(allegro, near[:4], far[:4], grid) < 0.0005)
     nothing = release_hand(allegro, q[4:], inv[4:], TorchSDF(grid), contact[4:], RefineParams())
     assert np.abs(nothing - q[4:]).max() < 1e-9
+
+    used.clear()  # the thumb, a few cm off, in contact: all of its points are in every solve
+    thumb = list(allegro.spec.fingers).index("thumb")
+    contact[1:4, thumb] = True
+    release_hand(allegro, q, inv, TorchSDF(grid), contact, RefineParams())
+    points = np.flatnonzero(allegro.finger_point_masks["thumb"])
+    assert all(np.isin(points, i.numpy()).all() for _, i in used)
+
+
+def test_windows_cover_every_frame_and_cross_fade_linearly(allegro, monkeypatch):
+    """Windows of at most 10 frames overlapping by at least 4 on 23 frames: four of 9 frames,
+    evenly spaced ([0, 9), [5, 14), [9, 18), [14, 23)); each gets its own rows of the contact
+    map, counted from its first frame, and the shared frames ramp linearly from one window's
+    result to the next."""
+    from dexflow import refine
+
+    seen = []
+
+    def fake_whole(hand, q_init, obj_pose, sdf, contact, cmap, params):
+        k = len(seen)
+        seen.append((len(q_init), cmap["map_frame"].tolist()))
+        value = np.full_like(q_init, float(k))  # window k returns k everywhere
+        return value, np.full(len(q_init), k), np.full(len(q_init), 10.0 * k)
+
+    monkeypatch.setattr(refine, "_refine_whole", fake_whole)
+    monkeypatch.setattr(type(allegro), "clamp", lambda self, q: q)
+    monkeypatch.setattr(type(allegro), "apply_couplings", lambda self, q: q)
+    q = np.zeros((23, allegro.dof))
+    cmap = {"map_frame": np.array([0, 7, 9, 14, 22]), "map_finger": np.zeros(5, int)}
+    out, e0, e1 = refine_trajectory(
+        allegro, q, np.repeat(np.eye(4)[None], 23, 0), None, np.zeros((23, 4), bool), cmap,
+        RefineParams(window_frames=10, window_overlap=4),
+    )  # fmt: skip
+    assert [n for n, _ in seen] == [9, 9, 9, 9]
+    assert [f for _, f in seen] == [[0, 7], [2, 4], [0, 5], [0, 8]]
+    expected = np.r_[np.zeros(5), np.arange(1, 5) / 5, 1 + np.arange(1, 6) / 6,
+                     2 + np.arange(1, 5) / 5, np.full(5, 3.0)]  # fmt: skip
+    assert np.allclose(out[:, 0], expected) and np.allclose(e0, expected)
+    assert np.allclose(e1, 10 * expected)
+
+
+@pytest.mark.parametrize(("n", "window", "overlap"), [(401, 400, 40), (1000, 400, 40),
+                                                      (23, 10, 4), (57, 12, 6), (30, 16, 8)])  # fmt: skip
+def test_windows_are_few_equal_and_overlap_enough(n, window, overlap):
+    from dexflow.refine import _windows
+
+    spans = _windows(n, window, overlap)
+    assert spans[0][0] == 0 and spans[-1][1] == n
+    assert len({b - a for a, b in spans}) == 1 and spans[0][1] - spans[0][0] <= window
+    assert all(b0 - a1 >= overlap for (_, b0), (a1, _) in itertools.pairwise(spans))
+    assert all(a1 > a0 for (a0, _), (a1, _) in itertools.pairwise(spans))
+    fewer = len(spans) - 1  # one window less could not cover n with that overlap
+    assert fewer * window - (fewer - 1) * overlap < n
