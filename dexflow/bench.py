@@ -370,14 +370,14 @@ def bench_pipeline(
     from dexflow.objects.convex import CACHE_ENV
 
     base = load_params("params.yaml")
+    source = None if root is None else Path(root).resolve()
+    if source is not None and not StageDir(source).sequences_dir.is_dir():
+        raise FileNotFoundError(f"{source}: no sequences/ folder (convert a dataset first)")
     work = Path(tempfile.mkdtemp(prefix="dexflow-bench-"))
     objects = sorted(STANDINS)[: max(1, sequences // 2)]
     demo = dataclasses.replace(base.demo, objects=objects, sequences_per_object=2)
     data = dataclasses.replace(base.data, root="data/demo")
-    if root is not None:
-        source = Path(root).resolve()
-        if not StageDir(source).sequences_dir.is_dir():
-            raise FileNotFoundError(f"{source}: no sequences/ folder (convert a dataset first)")
+    if source is not None:
         data_root = _subset_root(source, subset, work / "subset")
         data = dataclasses.replace(base.data, name="custom", root=str(data_root), generated_by=[])
     cache, previous = work / "asset-cache", os.environ.get(CACHE_ENV)
@@ -591,6 +591,7 @@ def bench_long(
     """
     import dataclasses
     import json
+    import os
     import shutil
     import subprocess
     import sys
@@ -598,7 +599,10 @@ def bench_long(
 
     from dexflow.config import load_params
     from dexflow.data.demo import generate_demo
+    from dexflow.objects.convex import CACHE_ENV
 
+    if len(frames) < 2 or min(frames) < 1:
+        raise ValueError(f"bench long: give two lengths or more, each >= 1 frame (got {frames})")
     params = load_params("params.yaml")
     base = Path(tempfile.mkdtemp(prefix="dexflow-long-"))
     try:
@@ -610,11 +614,12 @@ def bench_long(
         for n in frames:
             root = _long_sequence(base / "demo", n, base / f"data_{n}")
             results = {}
+            env = {**os.environ, CACHE_ENV: str(base / f"cache_{n}")}  # every length cold
             for name in stages:
                 done = subprocess.run(
                     [sys.executable, "-c", _STAGE_DRIVER, "params.yaml", str(root),
                      str(base / f"project_{n}"), name],
-                    capture_output=True, text=True,
+                    capture_output=True, text=True, env=env,
                 )  # fmt: skip
                 lines = [x for x in done.stdout.splitlines() if x.startswith("{")]
                 if done.returncode != 0 or not lines:

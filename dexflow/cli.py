@@ -222,7 +222,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             overrides=args.set,
         )  # fmt: skip
     elif args.what == "long":
-        bench_long(tuple(int(n) for n in args.frames.split(",")), args.out_long)
+        try:
+            lengths = tuple(int(n) for n in args.frames.split(","))
+        except ValueError:
+            raise SystemExit(f"dexflow bench long --frames: whole numbers, e.g. 600,2400 (got "
+                             f"{args.frames!r})") from None  # fmt: skip
+        bench_long(lengths, args.out_long)
     elif args.what == "pipeline":
         workers = tuple(int(w) for w in args.workers.split(","))
         bench_pipeline(args.sequences, workers, args.out, args.root, args.subset)
@@ -438,7 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("report", help="generate reports/summary.md or reports/ablation.md")
     p.add_argument("what", choices=["summary", "ablation"])
     p.add_argument(
-        "--suite", choices=["paper"],
+        "--suite", choices=["paper"],  # dexflow.ablation.SUITES (not imported at start-up)
         help="ablation: run the suite's named experiments (conf/experiment) in "
         "multirun/<out name>/, resuming finished ones, and write one table per question",
     )  # fmt: skip

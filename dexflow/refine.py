@@ -43,9 +43,10 @@ quadratic penalty trades depth against the other terms, so the deepest frames of
 (fingers 2 cm inside the scan) would keep part of theirs: the last release is solved again
 (``release_rounds``) with ten times the ``w_pen`` of every frame still deeper than
 ``release_depth_m`` (a penalty continuation), which bounds the worst frame and not only the
-mean. Only the hand points that can matter enter the penetration and contact terms of a solve (``release_reach_m``, 3 cm: points farther from the
-object add exactly 0 to E_pen; every point of a finger in contact stays in), which makes the
-release about 2.5x faster without changing its result.
+mean. Only the hand points that can matter enter the penetration and contact terms of a solve
+(``release_reach_m``, 3 cm: points farther from the object add exactly 0 to E_pen; every point
+of a finger in contact stays in), which makes the release about 2.5x faster without changing
+its result.
 
 **Windows.** A sequence longer than ``window_frames`` is refined window by window (overlapping
 by ``window_overlap`` frames, cross-faded there), so that memory is bounded by a window: the

@@ -168,8 +168,38 @@ def test_run_suite_reuses_finished_experiments_and_reruns_changed_or_failed_ones
     ablation.run_suite("paper", root, tmp_path, ["seed=4"])  # other params: everything again
     assert ran == names
     ran.clear()
+    monkeypatch.setattr(ablation, "code_digest", lambda: "other code")
+    ablation.run_suite("paper", root, tmp_path, ["seed=4"])  # other code: everything again
+    assert ran == names
+    ran.clear()
     results = ablation.run_suite("paper", root, tmp_path, ["seed=5"], run=False)
     assert ran == [] and results["allegro"].status == "failed"
+
+
+def test_an_experiment_whose_config_is_rejected_fails_alone(tmp_path, monkeypatch):
+    ran: list[str] = []
+
+    def fake_run_job(cfg, root, job_dir):
+        ran.append(Path(job_dir).name)
+        (Path(job_dir) / "sweep_status.json").write_text(json.dumps({"status": "ok"}))
+        return {"status": "ok"}
+
+    monkeypatch.setattr("dexflow.sweep.run_job", fake_run_job)
+    monkeypatch.setitem(
+        ablation.SUITES,
+        "broken",
+        (
+            ablation.Question(
+                "q", "Q?", ("no_temporal", "no_such_experiment"), ("refine",), ("pd_mm",)
+            ),
+        ),
+    )
+    root = Path(__file__).resolve().parents[1]
+    results = ablation.run_suite("broken", root, tmp_path)
+    assert ran == [DEFAULT, "no_temporal"]
+    assert results["no_such_experiment"].status == "failed"
+    assert "stage params" in results["no_such_experiment"].error
+    assert "no_such_experiment" in results["no_such_experiment"].error
 
 
 def test_an_unknown_suite_is_named():

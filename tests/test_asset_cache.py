@@ -77,3 +77,16 @@ def test_the_cache_can_be_turned_off_or_be_unwritable(tmp_path, monkeypatch, cap
     monkeypatch.setenv(CACHE_ENV, str(blocker))
     assert len(cached_convex_decomposition(_mesh(), **SETTINGS)) >= 2  # parts still returned
     assert "not written" in caplog.text
+
+
+def test_a_damaged_entry_is_decomposed_again_and_replaced(tmp_path, monkeypatch, caplog):
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+    calls = _counting(monkeypatch)
+    first = cached_convex_decomposition(_mesh(), **SETTINGS)
+    (entry,) = (tmp_path / "cache" / "convex").glob("*.npz")
+    entry.write_bytes(entry.read_bytes()[:100])  # cut short (a full disk, a killed copy)
+    again = cached_convex_decomposition(_mesh(), **SETTINGS)
+    assert len(calls) == 2 and "unreadable" in caplog.text
+    assert np.array_equal(_vertices(first), _vertices(again))
+    cached_convex_decomposition(_mesh(), **SETTINGS)
+    assert len(calls) == 2  # replaced by a good entry

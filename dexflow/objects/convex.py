@@ -95,7 +95,9 @@ def asset_cache_dir() -> Path | None:
     ``off``, ``0``, ``none`` or empty."""
     value = os.environ.get(CACHE_ENV)
     if value is not None:
-        return None if value.strip().lower() in ("", "0", "off", "none") else Path(value)
+        if value.strip().lower() in ("", "0", "off", "none"):
+            return None
+        return Path(value).expanduser().resolve()  # the same folder from every stage's cwd
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(base) / "dexflow"
 
@@ -107,16 +109,21 @@ def cached_convex_decomposition(mesh: trimesh.Trimesh, **settings) -> list[trime
     A cache that cannot be written (read-only, full) is skipped with a warning: the parts are
     still returned.
     """
-    import coacd
+    from importlib.metadata import PackageNotFoundError, version
 
     folder = asset_cache_dir()
     if folder is None:
         return convex_decomposition(mesh, **settings)
     vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-    key = hashlib.sha256(vertices.tobytes() + faces.tobytes())
-    version = getattr(coacd, "__version__", "unknown")
-    key.update(json.dumps([settings, version, _CACHE_VERSION], sort_keys=True).encode())
+    try:
+        coacd_version = version("coacd")
+    except PackageNotFoundError:
+        coacd_version = "unknown"
+    header = [vertices.shape, faces.shape, settings, coacd_version, _CACHE_VERSION]
+    key = hashlib.sha256(json.dumps(header, sort_keys=True).encode())
+    key.update(vertices.tobytes())
+    key.update(faces.tobytes())
     path = folder / "convex" / f"{key.hexdigest()}.npz"
     try:
         with np.load(path) as stored:
@@ -124,8 +131,10 @@ def cached_convex_decomposition(mesh: trimesh.Trimesh, **settings) -> list[trime
             parts = [(stored[f"v{i}"], stored[f"f{i}"]) for i in range(count)]
         log.debug("convex parts of a %d-face mesh read from %s", len(faces), path)
         return [trimesh.Trimesh(v, f, process=True) for v, f in parts]
-    except (OSError, ValueError, KeyError):
-        pass  # not cached yet (or unreadable): compute and store
+    except FileNotFoundError:
+        pass  # not cached yet: compute and store
+    except Exception as exc:  # a damaged entry (cut short, corrupt): computed and replaced
+        log.warning("object asset cache %s unreadable (%s): decomposing again", path, exc)
     parts = _coacd_parts(mesh, **settings)
     arrays = {"count": np.array(len(parts))}
     for i, (v, f) in enumerate(parts):
