@@ -39,6 +39,7 @@ from dexflow.errors import ConfigError
 from dexflow.io.atomic import atomic_path, save_json
 from dexflow.io.layout import Layout
 from dexflow.resume import code_digest
+from dexflow.sweep import UNFINISHED
 
 __all__ = [
     "SUITES",
@@ -198,6 +199,8 @@ def load_result(job: Path, name: str | None = None) -> ExperimentResult:
         return ExperimentResult(name, "queued")
     if status.get("status") != "ok":
         stage, error = status.get("stage"), status.get("error")
+        if error == UNFINISHED:  # running now, or killed: the next run of the suite runs it
+            return ExperimentResult(name, "queued", f"stage {stage} running or interrupted")
         return ExperimentResult(name, "failed", f"stage {stage}: {error}")
     layout = Layout(root=job)
     try:
@@ -369,7 +372,7 @@ def write_suite_report(
         count = len({row["sequence"] for row in r.rows}) if r.rows else "—"
         note = (r.error or "").replace("|", "/").replace("\n", " ")
         if r.status == "queued":
-            note = "not run yet (rerun the command to run it)"
+            note = (r.error or "not run yet") + " (rerun the command to run it)"
         lines.append(f"| `{name}` | {r.status} | {count} | {note} |")
     with atomic_path(out_md) as tmp:
         tmp.write_text("\n".join(lines).rstrip() + "\n", encoding="utf-8")

@@ -55,6 +55,7 @@ __all__ = ["Stage", "load_stages", "main", "run_job", "upstream_stages"]
 log = logging.getLogger(__name__)
 
 STATUS_FILE = "sweep_status.json"
+UNFINISHED = "did not finish (interrupted?)"  # the status a job holds while a stage runs
 APP_CONFIG = "dexflow_sweep"
 # Symlinked into every job so that stage commands (`python stages/x.py`) and
 # `dexflow.config.project_root()` (conf/hand) work wherever the sweep directory is.
@@ -477,7 +478,7 @@ def run_job(cfg: DictConfig, root: str | Path, job_dir: str | Path) -> dict:
                 continue
             log.info("stage %s: running (%s)", stage.name, reason)
             _link_inputs(stage, stages, root, job_dir)
-            status.status, status.error = "failed", "did not finish (interrupted?)"
+            status.status, status.error = "failed", UNFINISHED
             status.write(job_dir)  # what a killed job leaves behind
             error = _run_stage(stage, job_dir)
             if error is not None:
