@@ -300,13 +300,16 @@ def _cell(c: Comparison | None) -> str:
 
 
 def _finding(experiment: str, method: str, comparisons: dict[str, Comparison]) -> str:
-    """One sentence: the resolved differences (better / worse), then those within the spread."""
-    clear, unclear = [], []
+    """One sentence: the resolved differences (better / worse), those within the spread, and
+    the metrics no sequence changed."""
+    clear, unclear, same = [], [], []
     for metric, c in comparisons.items():
         label, unit, higher = _METRICS.get(metric, (metric, "", False))
         unit = f" {unit}" if unit else ""
         spread = f"{_signed(c.delta)} ± {_fmt(c.half_width)}"
-        if c.resolved:
+        if c.delta == 0 and not c.half_width > 0:  # every paired difference is 0
+            same.append(label)
+        elif c.resolved:
             better = (c.delta > 0) == higher
             clear.append(
                 f"{label} {_fmt(c.default)} → {_fmt(c.value)}{unit} "
@@ -319,6 +322,8 @@ def _finding(experiment: str, method: str, comparisons: dict[str, Comparison]) -
     text += "; ".join(clear) if clear else "no difference larger than the spread"
     if unclear:
         text += "; within the spread across sequences: " + ", ".join(unclear)
+    if same:
+        text += "; unchanged in every sequence: " + ", ".join(same)
     return text + "."
 
 

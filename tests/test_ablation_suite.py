@@ -121,6 +121,7 @@ def test_report_of_complete_failed_and_queued_experiments(tmp_path):
     assert rms.startswith("**") and "(+" in rms  # resolved: bold, a positive Δ
     assert "RMS acc" in temporal and "worse" in temporal.split("**Findings.**")[1]
     assert "within the spread across sequences" in temporal  # the noisy keypoint error
+    assert "unchanged in every sequence: fingertip error, velocity KL." in temporal
     assert len(temporal.splitlines()[2].split("|")) - 2 <= 8  # readable: at most 8 columns
 
     search = text.split("## What does the global search buy?")[1].split("\n## ")[0]
