@@ -527,7 +527,7 @@ def _bench_table(runs: list[dict], command: str, what: str) -> list[str]:
 
 
 _STAGE_DRIVER = """
-import dataclasses, json, resource, sys, time
+import dataclasses, json, sys, time
 from dexflow.bench import _pipeline_stages
 from dexflow.config import load_params
 from dexflow.io.layout import Layout
@@ -541,7 +541,12 @@ for name, fn in _pipeline_stages(params, Layout.of(data_root, root=project)):
         start = time.perf_counter()
         fn()
         seconds = time.perf_counter() - start
-        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        # VmHWM: this program's own peak (ru_maxrss would carry the forking parent's over exec)
+        try:
+            rss = int(open("/proc/self/status").read().split("VmHWM:")[1].split()[0]) / 1024
+        except (OSError, IndexError):  # not Linux: the peak since the fork, in platform units
+            import resource
+            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         print(json.dumps({"seconds": seconds, "rss_mb": rss}))
 """
 
