@@ -280,6 +280,8 @@ class RetargetParams:
     lambda_diff: float = 0.01
     gamma_pred: float = 0.05
     window: int = 0
+    chunk_frames: int = 1000
+    chunk_overlap: int = 60
     base_sigma_m: float = 0.05
     base_sigma_rad: float = 0.5
     robust_delta_m: float = 0.02
@@ -312,6 +314,14 @@ def _validate_retarget(r: RetargetParams) -> None:
     for key in ("alpha", "lambda_diff", "gamma_pred", "robust_delta_m", "lowpass_hz"):
         _require(getattr(r, key) >= 0, f"retarget.{key}", ">= 0", getattr(r, key))
     _require(r.window >= 0, "retarget.window", "0 (all frames) or a window length >= 1", r.window)
+    _require(r.chunk_frames >= 0, "retarget.chunk_frames", ">= 0 (0: no chunks)", r.chunk_frames)
+    if r.chunk_frames:
+        _require(
+            3 <= r.chunk_overlap < r.chunk_frames,
+            "retarget.chunk_overlap",
+            f"3 to chunk_frames - 1 = {r.chunk_frames - 1}",
+            r.chunk_overlap,
+        )
     _require(r.iterations >= 1, "retarget.iterations", ">= 1", r.iterations)
     import nlopt
 

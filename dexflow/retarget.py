@@ -401,9 +401,7 @@ def retarget_sequence(seq: Sequence, hand: RobotHand, params: RetargetParams) ->
 def _solve_dexflow(problem, x0, human, weights, params, stats) -> np.ndarray:
     n_frames = len(x0)
     if params.window <= 0 or params.window >= n_frames:
-        x, info = _solve_lm(problem, x0, human, weights, 0, params, temporal=True)
-        stats["evaluations"] += info["evaluations"]
-        return x
+        return _solve_chunked(problem, x0, human, weights, params, stats)
     x = x0.copy()
     k = params.window
     x[:k], info = _solve_lm(problem, x0[:k], human[:k], weights[:k], 0, params, temporal=True)
@@ -418,6 +416,30 @@ def _solve_dexflow(problem, x0, human, weights, params, stats) -> np.ndarray:
         x[lo + held : t + 1] = sol[held:]
         stats["evaluations"] += info["evaluations"]
     return x
+
+
+def _solve_chunked(problem, x0, human, weights, params, stats) -> np.ndarray:
+    """The offline solve of all frames at once; a sequence longer than ``chunk_frames`` is
+    solved chunk after chunk, so that memory (the per-frame Jacobians and banded blocks, about
+    0.2 MB a frame) is bounded by a chunk: each chunk starts ``chunk_overlap`` frames before the
+    end of the last, solves those frames again knowing what follows them, and holds the two
+    frames before them as solved (they carry the velocity and acceleration across)."""
+    n_frames, chunk = len(x0), params.chunk_frames
+    if chunk <= 0 or n_frames <= chunk:
+        x, info = _solve_lm(problem, x0, human, weights, 0, params, temporal=True)
+        stats["evaluations"] += info["evaluations"]
+        return x
+    x, start, held = x0.copy(), 0, 0
+    while True:
+        end = min(start + chunk, n_frames)
+        sol, info = _solve_lm(
+            problem, x[start:end], human[start:end], weights[start:end], held, params, True
+        )
+        x[start + held : end] = sol[held:]
+        stats["evaluations"] += info["evaluations"]
+        if end == n_frames:
+            return x
+        start, held = end - params.chunk_overlap - 2, 2
 
 
 def _recover(problem, x, human, weights, observed, params, stats) -> np.ndarray:

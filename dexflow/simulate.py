@@ -99,7 +99,7 @@ from dexflow.io.artifacts import (
 )
 from dexflow.io.layout import Layout
 from dexflow.labelled_stage import labelled_output, load_labelled
-from dexflow.measures import penetration_depth, surface_distances
+from dexflow.measures import hand_object_depths
 from dexflow.mujoco_world import MujocoGraspWorld
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import PipelineParams, SimulateParams
@@ -576,9 +576,8 @@ def simulate_sequence(
         frames = frames[: p.max_frames]
     q, poses = np.asarray(q, dtype=float), np.asarray(poses, dtype=float)
     depth = np.zeros(len(q))
-    if frames:
-        distances, _ = surface_distances(hand, q[frames], poses[frames], sdf)
-        depth[frames] = penetration_depth(distances)
+    if frames:  # in chunks of frames: memory bounded on long captures
+        depth[frames] = hand_object_depths(hand, q[frames], poses[frames], sdf)[0]
     rows: list[dict] = []
     found = {e: dict.fromkeys(("contact", "bench", "contact_raw", "bench_raw")) for e in engines}
     for t in frames:

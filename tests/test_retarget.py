@@ -206,3 +206,24 @@ def test_banded_temporal_matrix_equals_dense():
         rebuilt[idx + d, idx] = ab[d, : frames * n - d]
         rebuilt[idx, idx + d] = ab[d, : frames * n - d]
     np.testing.assert_allclose(rebuilt, dense, atol=1e-12)
+
+
+def test_long_sequences_are_solved_in_overlapping_chunks_like_one_solve(hands):
+    """retarget.chunk_frames bounds memory on long captures: chunk after chunk, each re-solving
+    the end of the last; the result follows the single solve, with no step at the seams."""
+    hand = hands["gripper"]
+    q_true = _smooth_trajectory(hand, 60, seed=21)
+    seq = _sequence_from_robot(hand, q_true, 0.001, seed=22)
+    params = RetargetParams()
+    params.global_search.max_evals = 60
+    whole = retarget_sequence(seq, hand, replace(params, chunk_frames=0))
+    chunked = retarget_sequence(seq, hand, replace(params, chunk_frames=20, chunk_overlap=6))
+    assert chunked.stats["evaluations"] > whole.stats["evaluations"]  # several solves ran
+    assert np.nanmean(chunked.error_m) < 0.004
+    gap = np.linalg.norm(whole.keypoints_robot - chunked.keypoints_robot, axis=-1)
+    assert gap.max() < 0.002, gap.max(axis=1)
+    steps = np.linalg.norm(np.diff(chunked.keypoints_robot, axis=0), axis=-1).max(axis=1)
+    smooth = np.linalg.norm(np.diff(whole.keypoints_robot, axis=0), axis=-1).max(axis=1)
+    assert steps.max() < 1.5 * smooth.max()
+    short = retarget_sequence(seq, hand, replace(params, chunk_frames=60, chunk_overlap=6))
+    assert np.array_equal(short.q, whole.q)  # no longer than a chunk: one solve, as before
