@@ -301,21 +301,24 @@ def release_hand(
     # over all of them, however far (the contact stage may call a finger touching at 1-2 cm)
     contact_points = masks[touching.any(0)].any(0)
 
-    def within_reach() -> tuple[torch.Tensor, torch.Tensor]:
+    def distances() -> torch.Tensor:
+        """(T, N) signed distances of every surface point at the current configuration."""
+        with torch.no_grad():
+            points, _ = hand.surface(configuration())
+            return sdf(transform_points(world_to_obj, points))
+
+    def within_reach(sd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The frames with a surface point within ``release_reach_m`` of the object or a
         finger in contact, and the points within it in any of them plus every point of the
         fingers in contact: the points left out are farther than ``release_reach_m >
         pen_margin_m`` and on no contact finger, so their terms are exactly 0 unless the hand
         moves that far in one solve."""
-        with torch.no_grad():
-            points, _ = hand.surface(configuration())
-            sd = sdf(transform_points(world_to_obj, points))
         close = sd < params.release_reach_m
         frames = torch.nonzero(close.any(-1) | touching.any(-1)).flatten()
         points_used = close[frames].any(0) | contact_points
         return frames, torch.nonzero(points_used).flatten()
 
-    near, index = within_reach()
+    near, index = within_reach(distances())
 
     def energy() -> torch.Tensor:
         q = configuration()
@@ -354,14 +357,12 @@ def release_hand(
         ).step(closure)  # fmt: skip
         if solve == solves - 1:
             break
-        with torch.no_grad():
-            points, _ = hand.surface(configuration())
-            depth = torch.relu(-sdf(transform_points(world_to_obj, points)).amin(-1))
-        deep = depth > params.release_depth_m
+        sd = distances()
+        deep = torch.relu(-sd.amin(-1)) > params.release_depth_m
         if not deep.any():
             break
         w_pen = torch.where(deep, w_pen * 10, w_pen)
-        near, index = within_reach()
+        near, index = within_reach(sd)  # from the same distances: one surface pass a round
     with torch.no_grad():
         return hand.clamp(configuration()).numpy()
 
