@@ -204,12 +204,13 @@ def contact_sequence(
     # distances and closest points first (the states need every frame), then the contact map.
     distance = np.zeros((len(q), len(masks)))
     closest = np.zeros((len(q), len(masks), 3))
-    chunks = frame_chunks(len(q))
+    chunks, last = frame_chunks(len(q)), None
     for frames in chunks:
         distance[frames], dist, local = finger_distances(hand, q[frames], seq.obj_pose[frames], sdf)
         rows = np.arange(len(local))[:, None]
         nearest = np.stack([np.where(m, dist, np.inf).argmin(axis=1) for m in masks], axis=1)
         closest[frames] = local[rows, nearest]
+        last = (frames, dist, local)  # the map reuses it (a short sequence's only chunk)
     world = transform_points(seq.obj_pose, closest)
     guard = _guard(world, seq.obj_pose[:, :3, 3], seq.fps, params)
     raw, final = contact_states(distance, seq.fps, params, guard)
@@ -217,7 +218,10 @@ def contact_sequence(
     for frames in chunks:
         if not final[frames].any():
             continue
-        _, dist, local = finger_distances(hand, q[frames], seq.obj_pose[frames], sdf)
+        if last is not None and frames == last[0]:
+            _, dist, local = last
+        else:
+            _, dist, local = finger_distances(hand, q[frames], seq.obj_pose[frames], sdf)
         part = _contact_map(local, dist, final[frames], masks, tree, normals, params.map_points)
         part["map_frame"] = part["map_frame"] + frames.start
         parts.append(part)
