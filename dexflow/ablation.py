@@ -39,7 +39,7 @@ from dexflow.errors import ConfigError
 from dexflow.io.atomic import atomic_path, save_json
 from dexflow.io.layout import Layout
 from dexflow.resume import code_digest
-from dexflow.sweep import UNFINISHED
+from dexflow.sweep import STATUS_FILE, UNFINISHED
 
 __all__ = [
     "SUITES",
@@ -194,7 +194,7 @@ def load_result(job: Path, name: str | None = None) -> ExperimentResult:
     job = Path(job)
     name = name or job.name
     try:
-        status = json.loads((job / "sweep_status.json").read_text(encoding="utf-8"))
+        status = json.loads((job / STATUS_FILE).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return ExperimentResult(name, "queued")
     if status.get("status") != "ok":
@@ -454,10 +454,6 @@ def _code(job: Path) -> str | None:
         return None
 
 
-def _write_status(job: Path, status: dict) -> None:
-    save_json(job / "sweep_status.json", status)
-
-
 def _same_params(a: Path, b: Path) -> bool:
     from dvc.utils.serialize import load_yaml
 
@@ -506,7 +502,8 @@ def run_suite(
                     [*(overrides or []), *extra], job / "params.composed.yaml"
                 )
             except ConfigError as exc:  # this experiment cannot run; the others still do
-                _write_status(job, {"status": "failed", "stage": "params", "error": str(exc)})
+                failed = {"status": "failed", "stage": "params", "error": str(exc)}
+                save_json(job / STATUS_FILE, failed)  # as run_job records a rejected config
                 results[name] = load_result(job, name)
                 log.error("[%d/%d] %s: %s", i, len(names), name, exc)
                 continue
