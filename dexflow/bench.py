@@ -361,7 +361,6 @@ def bench_pipeline(
     """
     import dataclasses
     import os
-    import platform
     import shutil
     import tempfile
 
@@ -424,16 +423,29 @@ def bench_pipeline(
         command += f" --subset {subset}" if subset else ""
         what = f"the converted sequences in `{root}`" + (f" ({subset} of them)" if subset else "")
     lines = _bench_table(runs, command, what)
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"
-    lines[4:4] = [f"Machine: {machine}. Wall-clock seconds; other load on the machine counts.", ""]
+    lines[4:4] = [_machine_line(), ""]
     text = "\n".join(lines) + "\n"
+    _publish(text, out)
+    return runs
+
+
+def _machine_line() -> str:
+    """The benchmark reports' line saying where and how they were measured."""
+    import os
+    import platform
+
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"
+    return f"Machine: {machine}. Wall-clock seconds; other load on the machine counts."
+
+
+def _publish(text: str, out: str | None) -> None:
+    """Print a benchmark report and write it to ``out`` (atomically; None: print only)."""
     print(text)
     if out:
         from dexflow.io.atomic import atomic_path
 
         with atomic_path(Path(out)) as tmp:
             tmp.write_text(text)
-    return runs
 
 
 def _peak_rss_mb() -> float:
@@ -635,18 +647,11 @@ def bench_long(
     finally:
         shutil.rmtree(base, ignore_errors=True)
     text = "\n".join(_long_table(runs)) + "\n"
-    print(text)
-    if out:
-        from dexflow.io.atomic import atomic_path
-
-        with atomic_path(Path(out)) as tmp:
-            tmp.write_text(text)
+    _publish(text, out)
     return runs
 
 
 def _long_table(runs: list[dict]) -> list[str]:
-    import os
-    import platform
 
     first, last = runs[0], runs[-1]
     scale = last["frames"] / first["frames"]
@@ -658,8 +663,7 @@ def _long_table(runs: list[dict]) -> list[str]:
         "to each length, every stage in a process of its own (one worker), so that the peak "
         "resident memory is the stage's own. A 10-minute capture at 30 fps is 18,000 frames.",
         "",
-        f"Machine: {platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}. "
-        "Wall-clock seconds; other load on the machine counts.",
+        _machine_line(),
         "",
         "| stage | "
         + " | ".join(f"{r['frames']} frames: s, frames/s, peak MiB" for r in runs)
@@ -780,12 +784,7 @@ def bench_real(
     if not work:
         shutil.rmtree(base, ignore_errors=True)
     text = _real_table(results, source, sequences, workers, overrides or [])
-    print(text)
-    if out:
-        from dexflow.io.atomic import atomic_path
-
-        with atomic_path(Path(out)) as tmp:
-            tmp.write_text(text)
+    _publish(text, out)
     return results
 
 
