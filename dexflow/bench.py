@@ -461,12 +461,12 @@ def _peak_rss_mb() -> float:
 def _pipeline_stages(params, layout) -> list[tuple[str, Callable[[], dict]]]:
     """Every stage of ``dvc.yaml`` as (name, call) on the project ``layout``, in its order:
     the stage specs the stage scripts run, with the same arguments (``foreach`` items)."""
-    from dexflow import align, contact, metrics, refine, replay, retarget, simulate
+    from dexflow import align, contact, hand_stage, metrics, refine, replay, retarget, simulate
     from dexflow.data.demo import generate_demo
     from dexflow.io.layout import TRAJECTORIES
     from dexflow.runner import run_stage
 
-    steps = [(align.STAGE, ())]
+    steps = [(hand_stage.STAGE, ()), (align.STAGE, ())]
     steps += [(retarget.STAGE, (method,)) for method in ("dexflow", "position")]
     steps += [(contact.STAGE, ()), (refine.STAGE, ())]
     steps += [(simulate.STAGE, (label,)) for label in TRAJECTORIES]

@@ -32,6 +32,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from dexflow.geometry import transform_points, world_to_object
+from dexflow.hands.files import staged_spec
 from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.io.artifacts import ContactResult, ObjectAssets, read_trajectory, write_contact
 from dexflow.io.layout import Layout, StageDir
@@ -265,14 +266,14 @@ def run_contact(params: PipelineParams, layout: Layout) -> dict:
         out,
         "contact",
         {"hand": params.hand, "contact": params.contact},
-        inputs=(source, aligned),
+        inputs=(source, aligned, layout.hand_files),
     )
     files = stage.start()
-    spec, base_dir = params.hand, layout.hand_dir
+    spec = staged_spec(params.hand, layout.hand_files.root)
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
-        hand = cached_hand(spec, base_dir)
+        hand = cached_hand(spec, None)
         result, stats = contact_sequence(hand, path, aligned, params.contact)
         write_contact(out.sequence(path), result)
         return stats

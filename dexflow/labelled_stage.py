@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dexflow.hands.files import staged_spec
 from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.io.artifacts import ContactResult, read_contact, read_trajectory
 from dexflow.io.layout import Layout, StageDir
@@ -22,12 +23,18 @@ def labelled_output(
     name: str, params: PipelineParams, layout: Layout, label: str, out: StageDir
 ) -> StageOutput:
     """The output of stage ``name`` on the trajectories labelled ``label``: resumed on the hand
-    and the stage's own params section, its inputs the trajectories, contacts and scaled scene."""
+    and the stage's own params section, its inputs the trajectories, contacts, scaled scene and
+    hand model.
+
+    Raises:
+        HandConfigError: ``data/hand`` holds no copy of the hand model, or another model's.
+    """
+    staged_spec(params.hand, layout.hand_files.root)  # fail the stage, not every sequence
     return StageOutput(
         out,
         f"{name} {label}",
         {"hand": params.hand, name: getattr(params, name)},
-        inputs=(layout.trajectory(label), layout.contact, layout.scale_align),
+        inputs=(layout.trajectory(label), layout.contact, layout.scale_align, layout.hand_files),
     )
 
 
@@ -37,7 +44,7 @@ def load_labelled(
     """One sequence's hand, scaled sequence, trajectory ``q (T, dof)`` (``path``) and contacts,
     in a worker limited to one torch thread."""
     torch.set_num_threads(1)
-    hand = cached_hand(params.hand, layout.hand_dir)
+    hand = cached_hand(staged_spec(params.hand, layout.hand_files.root), None)
     aligned = layout.scale_align
     seq = load_sequence(aligned.sequence(path), data_root=aligned.root)
     q = read_trajectory(path, hand.joint_names, frames=seq.num_frames).q

@@ -57,6 +57,7 @@ import numpy as np
 import torch
 from scipy.spatial import ConvexHull
 
+from dexflow.hands.files import staged_spec
 from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.human.keypoints import FINGERS, FINGERTIPS
 from dexflow.io.artifacts import (
@@ -303,15 +304,16 @@ def run_metrics(params: PipelineParams, layout: Layout) -> dict:
         {"hand": params.hand, "metrics": params.metrics, "simulate": params.simulate},
         inputs=[layout.trajectory(m) for m in METHODS]
         + [contacts, aligned]
-        + [layout.simulate(m) for m in METHODS],
+        + [layout.simulate(m) for m in METHODS]
+        + [layout.hand_files],
     )
     files = stage.start()
-    spec, base_dir, mp = params.hand, layout.hand_dir, params.metrics
+    spec, mp = staged_spec(params.hand, layout.hand_files.root), params.metrics
     simulated = {m: _simulation(layout.simulate(m).summary) for m in METHODS}
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
-        hand = cached_hand(spec, base_dir)
+        hand = cached_hand(spec, None)
         seq = load_sequence(aligned.sequence(path), aligned.root)
         frames, fingers = seq.num_frames, list(hand.spec.fingers)
         retargeted = read_trajectory(layout.retarget("dexflow").sequence(path), hand.joint_names)

@@ -83,7 +83,7 @@ from dexflow.grasp_protocol import (
     damped_step,
     pushed_configuration,
 )
-from dexflow.hands.model import _urdf_mesh_path
+from dexflow.hands.files import urdf_mesh_path
 from dexflow.hands.robot import RobotHand, base_transform
 from dexflow.params import SimulateParams
 
@@ -119,7 +119,7 @@ def _hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
     for mesh in child.meshes:  # absolute paths: the scene has no model directory of its own
         if mesh.file and not Path(mesh.file).is_absolute():
             if hand.model.format == "urdf":
-                mesh.file = str(_urdf_mesh_path(mesh.file, path.parent))
+                mesh.file = str(urdf_mesh_path(mesh.file, path.parent))
             else:
                 mesh.file = str(folder / child.meshdir / mesh.file)
     for texture in child.textures:

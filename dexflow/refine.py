@@ -66,6 +66,7 @@ import numpy as np
 import torch
 
 from dexflow.geometry import rotate_vectors, transform_points
+from dexflow.hands.files import staged_spec
 from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.human.keypoints import FINGERTIPS
 from dexflow.io.artifacts import (
@@ -509,15 +510,15 @@ def run_refine(params: PipelineParams, layout: Layout) -> dict:
         out,
         "refine",
         {"hand": params.hand, "refine": params.refine},
-        inputs=(source, contacts, aligned),
+        inputs=(source, contacts, aligned, layout.hand_files),
     )
     files = stage.start()
-    spec, base_dir = params.hand, layout.hand_dir
+    spec = staged_spec(params.hand, layout.hand_files.root)
     rp = params.refine
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
-        hand = cached_hand(spec, base_dir)
+        hand = cached_hand(spec, None)
         seq = load_sequence(aligned.sequence(path), data_root=aligned.root)
         q0 = read_trajectory(path, hand.joint_names, frames=seq.num_frames).q
         found = read_contact(contacts.sequence(path), list(hand.spec.fingers), seq.num_frames)

@@ -49,6 +49,7 @@ import torch
 from scipy.linalg import solveh_banded
 from scipy.spatial.transform import Rotation
 
+from dexflow.hands.files import staged_spec
 from dexflow.hands.jacobian import KeypointJacobian
 from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.human.cleaning import detect_bad_frames
@@ -551,14 +552,14 @@ def run_retarget(params: PipelineParams, layout: Layout, method: str = "dexflow"
         out,
         f"retarget {method}",
         {"seed": params.seed, "hand": params.hand, "retarget": rparams},
-        inputs=(source,),
+        inputs=(source, layout.hand_files),
     )
     files = stage.start()
-    spec, base_dir = params.hand, layout.hand_dir
+    spec = staged_spec(params.hand, layout.hand_files.root)
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
-        hand = cached_hand(spec, base_dir)
+        hand = cached_hand(spec, None)
         seq = load_sequence(path, data_root=source.root)
         result = retarget_sequence(seq, hand, rparams)
         save_result(out.sequence(path), result, seq)

@@ -417,6 +417,7 @@ def test_mano_joints_from_a_structurally_valid_fake_model(tmp_path):
 
 def test_converted_data_runs_through_the_pipeline_like_the_demo(tmp_path):
     from dexflow.align import run_scale_align
+    from dexflow.hand_stage import run_hand
     from dexflow.io.layout import Layout
     from dexflow.params import PipelineParams
     from dexflow.retarget import run_retarget
@@ -444,6 +445,7 @@ def test_converted_data_runs_through_the_pipeline_like_the_demo(tmp_path):
     layout = Layout.of(tmp_path / "data", root=tmp_path / "project")
     aligned = run_scale_align(params, layout)
     assert aligned["num_ok"] == 1
+    run_hand(params, layout)
     summary = run_retarget(params, layout, "dexflow")
     assert summary["num_ok"] == 1 and summary["keypoint_error_mm"] < 40
 

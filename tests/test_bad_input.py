@@ -24,6 +24,7 @@ import dexflow.align
 from dexflow.align import STAGE as SCALE_ALIGN
 from dexflow.align import run_scale_align
 from dexflow.errors import IncompleteStageError, MeshError, SequenceFormatError
+from dexflow.hand_stage import run_hand
 from dexflow.hands.spec import load_hand_spec
 from dexflow.io.layout import Layout, StageDir
 from dexflow.io.mirror import MIRROR, mirror_mesh
@@ -191,6 +192,7 @@ def dropped_run(tmp_path_factory):
     layout = Layout.of(root, root=root / "project")
     params = _params()
     aligned = run_stage(SCALE_ALIGN, params, layout)
+    run_hand(params, layout)
     retarget_stage = StageSpec("retarget", run_retarget, ("num_ok",), lambda s: "")
     retargeted = run_stage(retarget_stage, params, layout, ("position",))
     return layout, aligned, retargeted
@@ -333,6 +335,7 @@ def test_a_left_hand_is_mirrored_with_its_scene_and_retargets_like_the_right_one
     np.testing.assert_allclose(meshes["left"].vertices, meshes["right"].vertices, atol=1e-9)
     np.testing.assert_array_equal(meshes["left"].faces, meshes["right"].faces)
 
+    run_hand(params, layout)
     summary = run_retarget(params, layout, "dexflow")
     error = {n: e["keypoint_error_mm"] for n, e in summary["sequences"].items()}
     assert error["left"] == pytest.approx(error["right"], abs=1e-6)

@@ -90,7 +90,19 @@ def test_every_dvc_stage_data_output_is_checked(stages):
         for out in outs
         if out.parts[0] == "data" and out != Layout().data.root
     }
-    assert data_outs == set(_STAGE_PATHS)
+    assert data_outs == {*_STAGE_PATHS, "hand"}
+
+
+def test_hand_stage_writes_the_layouts_hand_files_on_every_repro(stages):
+    """Stage hand copies the model (it has no metrics) and runs on every ``dvc repro``: the
+    model files it copies may lie outside the project, where DVC cannot hash them."""
+    outs, metrics = stages["hand"]
+    assert outs == [Layout().hand_files.root] and metrics == []
+    dvc = yaml.safe_load((REPO / "dvc.yaml").read_text(encoding="utf-8"))
+    assert dvc["stages"]["hand"]["always_changed"] is True
+    loading = [s for s, spec in dvc["stages"].items() if "hand" in spec.get("do", spec)["params"]]
+    for name in loading:  # every stage that loads the hand reads the copy
+        assert "data/hand" in dvc["stages"][name].get("do", dvc["stages"][name])["deps"], name
 
 
 def test_simulate_foreach_is_the_trajectories_by_label(simulate_foreach):

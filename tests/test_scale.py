@@ -17,6 +17,7 @@ import trimesh
 from dexflow.align import run_scale_align
 from dexflow.contact import run_contact
 from dexflow.errors import ConfigError
+from dexflow.hand_stage import run_hand
 from dexflow.hands import load_hand
 from dexflow.hands.spec import load_hand_spec
 from dexflow.io.layout import Layout
@@ -235,6 +236,7 @@ def contact_inputs(tmp_path_factory):
     root = _box_inputs(tmp_path_factory.mktemp("scale"), 5)
     layout = Layout.of(root, root=root / "project")
     assert run_scale_align(_params(), layout)["num_ok"] == 5
+    run_hand(_params(), layout)
     hand = load_hand("allegro")
     retarget = layout.retarget("dexflow")
     retarget.sequences_dir.mkdir(parents=True)
@@ -252,6 +254,7 @@ def _contact_project(inputs: Layout, name: str) -> Layout:
     (layout.root / "data" / "retarget").mkdir(parents=True)
     layout.scale_align.root.symlink_to(inputs.scale_align.root.resolve())
     layout.retarget("dexflow").root.symlink_to(inputs.retarget("dexflow").root.resolve())
+    layout.hand_files.root.symlink_to(inputs.hand_files.root.resolve())
     return layout
 
 

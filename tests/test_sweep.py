@@ -20,7 +20,9 @@ from dexflow.report import collect_multirun
 from dexflow.sweep import load_stages, main, run_job, upstream_stages
 
 ROOT = Path(__file__).resolve().parents[1]
-UPSTREAM_OF_CONTACT = ["demo@demo", "scale_align", "retarget@dexflow", "retarget@position"]
+UPSTREAM_OF_CONTACT = [
+    "demo@demo", "hand", "scale_align", "retarget@dexflow", "retarget@position"
+]  # fmt: skip
 
 
 def _env(project: Path | None = None) -> dict[str, str]:
@@ -54,7 +56,7 @@ def _status(job: Path) -> dict:
 def test_load_stages_expands_foreach_and_interpolates_params():
     params = load_yaml(ROOT / "params.yaml")
     stages = {s.name: s for s in load_stages(ROOT / "dvc.yaml", params)}
-    assert list(stages)[:4] == UPSTREAM_OF_CONTACT
+    assert list(stages)[:5] == UPSTREAM_OF_CONTACT
     assert {"simulate@baseline", "simulate@retarget", "simulate@refine"} <= set(stages)
     retarget = stages["retarget@position"]
     assert retarget.cmd == "python stages/retarget.py position"
@@ -75,12 +77,13 @@ def test_upstream_stages_follow_the_outputs_each_stage_depends_on():
     upstream = upstream_stages(stages)
     assert upstream["demo@demo"] == []
     assert upstream["scale_align"] == ["demo@demo"]  # through ${data.root} = data/demo
-    assert sorted(upstream["contact"]) == ["retarget@dexflow", "scale_align"]
+    assert sorted(upstream["contact"]) == ["hand", "retarget@dexflow", "scale_align"]
+    assert upstream["hand"] == []
     assert "retarget@position" in upstream["simulate@baseline"]
     assert "retarget@position" not in upstream["simulate@refine"]
     assert "refine" in upstream["simulate@refine"]
-    # `report` reads reports/metrics, which every stage writes into
-    assert set(upstream["report"]) == {s.name for s in stages} - {"report"}
+    # `report` reads reports/metrics, which every stage but hand (a copy) writes into
+    assert set(upstream["report"]) == {s.name for s in stages} - {"report", "hand"}
 
 
 # --- the reuse rule on a toy pipeline (in process, seconds) --------------------------------------

@@ -16,7 +16,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dexflow.errors import HandConfigError
-from dexflow.hands.model import KinematicModel, _urdf_mesh_path
+from dexflow.hands.files import urdf_mesh_path
+from dexflow.hands.model import KinematicModel
 from dexflow.io.atomic import atomic_path
 
 __all__ = ["ROOT_LINK", "export_urdf", "links_without_inertial", "with_default_inertials"]
@@ -211,7 +212,7 @@ def with_default_inertials(
     for mesh in tree.getroot().iter("mesh"):
         if mesh.get("filename"):
             try:
-                path = _urdf_mesh_path(mesh.get("filename"), urdf_path.parent)
+                path = urdf_mesh_path(mesh.get("filename"), urdf_path.parent)
             except HandConfigError:  # an unresolvable package:// mesh stays as it was
                 continue
             if path.is_file():  # (collision meshes are checked when the hand is loaded)

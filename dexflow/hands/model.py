@@ -7,7 +7,6 @@ resolves them; MJCF sites become frames of the chain (fingertip sites are common
 
 from __future__ import annotations
 
-import importlib.util
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,35 +19,9 @@ from pytorch_kinematics import transforms as pk_tf
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from dexflow.errors import HandConfigError
+from dexflow.hands.files import resolve_model_path, urdf_mesh_path
 
 __all__ = ["Geometry", "KinematicModel", "load_kinematic_model", "resolve_model_path"]
-
-
-def resolve_model_path(model: str, base_dir: str | Path | None = None) -> Path:
-    """Find a model file: ``pkg://<package>/<path>``, an absolute path, or a relative one.
-
-    Relative paths are tried against ``base_dir`` (the hand yaml's directory), then the
-    working directory.
-    """
-    if not model:
-        raise HandConfigError("hand model: empty path; expected a URDF or MJCF file")
-    if model.startswith("pkg://"):
-        package, _, rel = model[len("pkg://") :].partition("/")
-        spec = importlib.util.find_spec(package)
-        if spec is None or not spec.submodule_search_locations:
-            raise HandConfigError(
-                f"hand model '{model}': Python package '{package}' is not installed"
-            )
-        path = Path(next(iter(spec.submodule_search_locations))) / rel
-    else:
-        path = Path(model)
-        if not path.is_absolute():
-            candidates = [Path(base_dir) / path] if base_dir is not None else []
-            candidates.append(Path.cwd() / path)
-            path = next((c for c in candidates if c.is_file()), candidates[0])
-    if not path.is_file():
-        raise HandConfigError(f"hand model '{model}': no file at {path}")
-    return path.resolve()
 
 
 @dataclass
@@ -242,19 +215,6 @@ def _origin(element) -> np.ndarray:
     return RigidTransform.from_components(xyz, Rotation.from_euler("xyz", rpy)).as_matrix()
 
 
-def _urdf_mesh_path(filename: str, urdf_dir: Path) -> Path:
-    if filename.startswith("package://"):
-        rel = filename[len("package://") :]
-        for candidate in (urdf_dir / rel.partition("/")[2], urdf_dir / rel, urdf_dir.parent / rel):
-            if candidate.is_file():
-                return candidate
-        return resolve_model_path("pkg://" + rel)
-    if filename.startswith("file://"):
-        filename = filename[len("file://") :]
-    path = Path(filename)
-    return path if path.is_absolute() else urdf_dir / path
-
-
 def _urdf_geometries(path: Path) -> list[Geometry]:
     out = []
     root = ET.parse(path).getroot()
@@ -275,7 +235,7 @@ def _urdf_geometries(path: Path) -> list[Geometry]:
                 size = (float(shape.get("radius")), float(shape.get("length")) / 2)
                 mesh = _primitive(shape.tag, size, transform)
             elif shape.tag == "mesh":
-                mesh_path = _urdf_mesh_path(shape.get("filename"), path.parent)
+                mesh_path = urdf_mesh_path(shape.get("filename"), path.parent)
                 if not mesh_path.is_file():
                     raise HandConfigError(
                         f"{path}: link '{link.get('name')}' collision mesh "

@@ -7,6 +7,7 @@ this) spells the same paths; ``tests/test_layout.py`` checks that the two agree.
 A project::
 
     conf/hand/                   hand yamls; relative model paths in them start here
+    data/hand/                   model/ (the hand model's files, copied), hand.json
     <data.root>/sequences/*.npz  the input (canonical format), with the meshes it references
     data/scale_align/            sequences/<name>.npz, objects/<key>/{mesh.obj, sdf.npz, ...}
     data/retarget/<method>/      sequences/<name>.npz (trajectories; methods dexflow, position)
@@ -181,6 +182,12 @@ class Layout:
     def data(self) -> StageDir:
         """The input (``data.root``): ``sequences/*.npz`` and the meshes they reference."""
         return StageDir(self.root / self.data_root)
+
+    @property
+    def hand_files(self) -> StageDir:
+        """Stage hand's copy of the hand model and every file it reads (``model/``), with
+        ``hand.json`` (:mod:`dexflow.hands.files`); the stages load the hand from it."""
+        return StageDir(self.root / "data" / "hand")
 
     @property
     def scale_align(self) -> StageDir:
