@@ -403,9 +403,20 @@ def energy_terms(
         dis = zero.index_add(0, rows, ((p - obj_pts) ** 2).sum(-1))
         align = zero.index_add(0, rows, (1 + (n * obj_nrm).sum(-1)) ** 2)
     pen = (torch.relu(pen_margin_m - sdf(local)) ** 2).sum(-1)
-    d = torch.cdist(points[:, spen_rows], fixed_others)
-    spen = torch.relu(spen_delta_m - d).sum((-1, -2))
+    spen = _overlap(points[:, spen_rows], fixed_others, spen_delta_m)
     return {"dis": dis, "pen": pen, "align": align, "spen": spen}
+
+
+def _overlap(points: torch.Tensor, others: torch.Tensor, delta: float) -> torch.Tensor:
+    """``Σ max(δ - ||p - o||, 0)`` per batch row over all pairs of ``points (B, S, 3)`` and
+    ``others (B, O, 3)``. Only pairs closer than ``δ`` add anything (or any gradient): all pairs
+    are measured without gradient and just those (a few of thousands) again with it, which
+    makes E_spen, otherwise half of the per-finger step, about ten times cheaper."""
+    with torch.no_grad():
+        close = torch.nonzero(torch.cdist(points, others) < delta)  # (n, 3): row, s, o
+    b, i, j = close.unbind(-1)
+    d = torch.linalg.vector_norm(points[b, i] - others[b, j], dim=-1)
+    return points.new_zeros(len(points)).index_add(0, b, delta - d)
 
 
 def _refine_finger(
