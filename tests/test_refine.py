@@ -359,3 +359,43 @@ def test_windows_are_few_equal_and_overlap_enough(n, window, overlap):
     assert all(a1 > a0 for (a0, _), (a1, _) in itertools.pairwise(spans))
     fewer = len(spans) - 1  # one window less could not cover n with that overlap
     assert fewer * window - (fewer - 1) * overlap < n
+
+
+def test_torch_sdf_gives_the_grids_values_and_the_exact_gradient_in_and_around_the_grid():
+    """TorchSDF computes its gradient with the value (no autograd graph): equal to
+    SignedDistanceGrid.query, to grid_sample's trilinear interpolation and its gradient, and to
+    central differences, for points inside the grid, outside it and in a U's concavity."""
+    u_shape = trimesh.creation.annulus(r_min=0.02, r_max=0.04, height=0.05)
+    grid = SignedDistanceGrid.from_mesh(u_shape, spacing=0.002, padding=0.01)
+    sdf = TorchSDF(grid)
+    lo, hi = sdf.origin, sdf.upper
+    generator = torch.Generator().manual_seed(0)
+    points = lo + (hi - lo) * (
+        torch.rand(7, 300, 3, dtype=torch.float64, generator=generator) * 1.4 - 0.2
+    )
+    mine = points.clone().requires_grad_(True)
+    value = sdf(mine)
+    np.testing.assert_allclose(value.detach().numpy(), grid.query(points.numpy()), atol=1e-12)
+    (value**3).sum().backward()
+
+    reference = points.clone().requires_grad_(True)  # the differentiable grid_sample query
+    flat = reference.reshape(-1, 3)
+    clamped = torch.maximum(torch.minimum(flat, hi), lo)
+    normalised = (2 * (clamped - lo) / (hi - lo) - 1).flip(-1).reshape(1, -1, 1, 1, 3)
+    values = torch.as_tensor(grid.values, dtype=torch.float64)[None, None]
+    sampled = torch.nn.functional.grid_sample(
+        values, normalised, align_corners=True, padding_mode="border"
+    ).reshape(-1)
+    expected = (sampled + torch.linalg.norm(flat - clamped, dim=-1)).reshape(points.shape[:-1])
+    (expected**3).sum().backward()
+    torch.testing.assert_close(value, expected, atol=1e-12, rtol=0)
+    torch.testing.assert_close(mine.grad, reference.grad, atol=1e-9, rtol=1e-9)
+
+    inside = points[0, :40].clone().requires_grad_(True)  # against central differences
+    (grad,) = torch.autograd.grad(sdf(inside).sum(), inside)
+    eps = 1e-7
+    for axis in range(3):
+        step = torch.zeros(3, dtype=torch.float64)
+        step[axis] = eps
+        fd = (sdf(inside.detach() + step) - sdf(inside.detach() - step)) / (2 * eps)
+        torch.testing.assert_close(grad[:, axis], fd, atol=1e-5, rtol=1e-5)
