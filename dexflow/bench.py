@@ -468,9 +468,14 @@ def _pipeline_stages(params, layout) -> list[tuple[str, Callable[[], dict]]]:
 
     steps = [(hand_stage.STAGE, ()), (align.STAGE, ())]
     steps += [(retarget.STAGE, (method,)) for method in ("dexflow", "position")]
-    steps += [(contact.STAGE, ()), (refine.STAGE, ())]
-    steps += [(simulate.STAGE, (label,)) for label in TRAJECTORIES]
-    steps += [(replay.STAGE, (label,)) for label in TRAJECTORIES]
+    steps += [(contact.STAGE, ())]
+    # the order dexflow.sweep runs dvc.yaml in: refine reads replay@retarget (refine.grip_m)
+    before, after = TRAJECTORIES[:-1], TRAJECTORIES[-1:]
+    steps += [(simulate.STAGE, (label,)) for label in before]
+    steps += [(replay.STAGE, (label,)) for label in before]
+    steps += [(refine.STAGE, ())]
+    steps += [(simulate.STAGE, (label,)) for label in after]
+    steps += [(replay.STAGE, (label,)) for label in after]
     steps += [(metrics.STAGE, ())]
 
     def call(spec, args) -> Callable[[], dict]:

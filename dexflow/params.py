@@ -384,6 +384,8 @@ class RefineParams:
     release_reach_m: float = 0.03
     window_frames: int = 400
     window_overlap: int = 40
+    grip_m: float = 0.0
+    grip_lead_frames: int = 10
 
 
 ENGINES = ("pybullet", "mujoco")
@@ -693,6 +695,8 @@ def validate(params: PipelineParams) -> PipelineParams:
                 "release_depth_m", "release_reach_m"):  # fmt: skip
         _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
     _require(r.release_rounds >= 1, "refine.release_rounds", ">= 1", r.release_rounds)
+    _require(0 <= r.grip_m <= 0.02, "refine.grip_m", "within [0, 0.02] metres", r.grip_m)
+    _require(r.grip_lead_frames >= 0, "refine.grip_lead_frames", ">= 0", r.grip_lead_frames)
     _require(
         r.release_reach_m > r.pen_margin_m,
         "refine.release_reach_m",

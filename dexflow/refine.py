@@ -58,13 +58,16 @@ Joint limits hold exactly (projection after every step and after blending). Metr
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from dexflow.errors import ArtifactError
 from dexflow.geometry import rotate_vectors, transform_points
 from dexflow.hands.files import staged_spec
 from dexflow.hands.robot import RobotHand, cached_hand
@@ -555,6 +558,50 @@ def _refine_finger(
         q[frames_t] = hand.clamp(hand.apply_couplings(q[frames_t]))
 
 
+def grip_trajectory(
+    hand: RobotHand,
+    q: np.ndarray,
+    obj_pose: np.ndarray,
+    sdf: TorchSDF,
+    contact: np.ndarray,
+    cmap: dict[str, np.ndarray],
+    params: RefineParams,
+    start: int,
+) -> np.ndarray:
+    """Press the fingers in contact ``params.grip_m`` into the object from frame ``start`` on.
+
+    A position-controlled finger presses only as far as its target lies inside the object, so
+    a trajectory whose fingers merely touch holds nothing once the object is lifted. Here the
+    per-finger step (E_dis, E_spen, E_joints, E_smooth; no E_pen) pulls each contact point of
+    the contact map to ``grip_m`` below its object point, along the object's inward normal, in
+    the frames ``>= start`` where its finger is in contact; the change ramps in (and out where
+    a contact ends) over ``blend_frames`` (Gaussian).
+
+    Returns:
+        (T, dof) trajectory; ``q`` itself where ``start`` is past every contact.
+    """
+    touching = np.asarray(contact, dtype=bool).copy()
+    touching[:start] = False
+    if not touching.any() or "map_frame" not in cmap:
+        return q
+    pressed = dict(cmap)
+    pressed["map_object_point"] = (
+        cmap["map_object_point"] - params.grip_m * cmap["map_object_normal"]
+    )
+    gripping = replace(params, w_pen=0.0, w_align=0.0)
+    inv = torch.as_tensor(np.linalg.inv(obj_pose), dtype=hand.dtype)
+    out = torch.as_tensor(q, dtype=hand.dtype).clone()
+    rng = np.random.default_rng(0)
+    unused = np.zeros(len(q))
+    fingers = list(hand.spec.fingers)
+    for name in params.finger_order:
+        if name in fingers:
+            _refine_finger(hand, out, name, touching, pressed, inv, sdf, gripping, rng, unused,
+                           unused.copy())  # fmt: skip
+    gripped = out.numpy()
+    return _blend(hand, q, gripped, params.blend_frames) if params.blend_frames > 0 else gripped
+
+
 def _blend(hand: RobotHand, q_init: np.ndarray, q: np.ndarray, sigma: float) -> np.ndarray:
     """Smooth the refinement's change over time (Gaussian, ``sigma`` frames) so that it ramps in
     and out around contacts instead of stepping; limits and ties are restored afterwards."""
@@ -569,15 +616,14 @@ def run_refine(params: PipelineParams, layout: Layout) -> dict:
     """Stage runner: refine every retargeted sequence with its contacts."""
     source, contacts, aligned = layout.retarget("dexflow"), layout.contact, layout.scale_align
     out = layout.refine
-    stage = StageOutput(
-        out,
-        "refine",
-        {"hand": params.hand, "refine": params.refine},
-        inputs=(source, contacts, aligned, layout.hand_files),
-    )
+    inputs = [source, contacts, aligned, layout.hand_files]
+    if params.refine.grip_m > 0:
+        inputs.append(layout.replay("retarget"))
+    stage = StageOutput(out, "refine", {"hand": params.hand, "refine": params.refine}, inputs)
     files = stage.start()
     spec = staged_spec(params.hand, layout.hand_files.root)
     rp = params.refine
+    lost = _lost_frames(layout) if rp.grip_m > 0 else {}
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
@@ -588,7 +634,12 @@ def run_refine(params: PipelineParams, layout: Layout) -> dict:
         contact, cmap = found.final, found.contact_map
         grid = ObjectAssets(aligned.object_of(seq.obj_mesh)).sdf()
         start = time.perf_counter()
-        q1, e0, e1 = refine_trajectory(hand, q0, seq.obj_pose, TorchSDF(grid), contact, cmap, rp)
+        sdf = TorchSDF(grid)
+        q1, e0, e1 = refine_trajectory(hand, q0, seq.obj_pose, sdf, contact, cmap, rp)
+        grip_from = lost.get(path.stem, -1)
+        if grip_from >= 0:
+            grip_from = max(grip_from - rp.grip_lead_frames, 0)
+            q1 = grip_trajectory(hand, q1, seq.obj_pose, sdf, contact, cmap, rp, grip_from)
         seconds = time.perf_counter() - start
         before = hand_object_measures(hand, q0, seq.obj_pose, grid, contact, rp.spen_delta_m)
         after = hand_object_measures(hand, q1, seq.obj_pose, grid, contact, rp.spen_delta_m)
@@ -601,6 +652,8 @@ def run_refine(params: PipelineParams, layout: Layout) -> dict:
         write_trajectory(out.sequence(path), Trajectory(q1, hand.joint_names, arrays))
 
         stats = {"frames": len(q0), "seconds": seconds}
+        if rp.grip_m > 0:
+            stats["grip_from_frame"] = grip_from  # -1: replay@retarget never lost the object
         for key in ("pd", "cd", "finger_overlap"):
             stats[f"{key}_before_mm"] = finite_mean(before[key]) * 1000
             stats[f"{key}_after_mm"] = finite_mean(after[key]) * 1000
@@ -617,6 +670,23 @@ def run_refine(params: PipelineParams, layout: Layout) -> dict:
     stage.finish(summary)
     speed = summary["num_frames"] / seconds if seconds else 0.0
     return {**summary, "timing": {"frames_per_second_one_core": speed}}
+
+
+def _lost_frames(layout: Layout) -> dict[str, int]:
+    """Per sequence, the frame where replay@retarget lost the object (-1: it never did), from
+    that stage's summary.
+
+    Raises:
+        ArtifactError: replay@retarget has not run (no summary).
+    """
+    path = layout.replay("retarget").summary
+    try:
+        entries = json.loads(path.read_text(encoding="utf-8"))["sequences"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise ArtifactError(
+            f"{path}: refine.grip_m > 0 needs stage replay@retarget's summary ({exc})"
+        ) from exc
+    return {name: int(e.get("lost_frame", -1)) for name, e in entries.items() if e.get("replayed")}
 
 
 _SUMMARY_KEYS = ("pd_before_mm", "pd_after_mm", "cd_before_mm", "cd_after_mm",

@@ -216,7 +216,9 @@ def _stage(name: str, body: dict, context: Mapping[str, Any]) -> Stage:
 
 
 def load_stages(dvc_yaml: str | Path, params: Mapping[str, Any]) -> list[Stage]:
-    """The stages of ``dvc.yaml`` in file order, ``foreach`` expanded, interpolated.
+    """The stages of ``dvc.yaml``, ``foreach`` expanded, interpolated, in the order they run:
+    file order, except that a stage waits for the stages whose outputs it depends on (refine
+    reads replay@retarget, written by a ``foreach`` stage further down).
 
     Args:
         dvc_yaml: The pipeline file.
@@ -257,7 +259,28 @@ def load_stages(dvc_yaml: str | Path, params: Mapping[str, Any]) -> list[Stage]:
                 stages.append(_stage(f"{name}@{key}", body["do"], context))
         else:
             stages.append(_stage(name, body, params))
-    return stages
+    return _in_dependency_order(stages, dvc_yaml)
+
+
+def _in_dependency_order(stages: list[Stage], where: str | Path) -> list[Stage]:
+    """``stages`` reordered so that every stage comes after those whose outputs it depends on;
+    otherwise in file order (the first stage that can run next runs next)."""
+    producers = {
+        s.name: {o.name for o in stages if o is not s
+                 and any(_overlaps(dep, out) for dep in s.deps for out in o.outputs)}
+        for s in stages
+    }  # fmt: skip
+    ordered: list[Stage] = []
+    placed: set[str] = set()
+    while len(ordered) < len(stages):
+        ready = next((s for s in stages if s.name not in placed and producers[s.name] <= placed),
+                     None)  # fmt: skip
+        if ready is None:
+            cycle = sorted(n for n in producers if n not in placed)
+            raise ConfigError(f"{where}: the stages {cycle} depend on each other's outputs")
+        ordered.append(ready)
+        placed.add(ready.name)
+    return ordered
 
 
 def _overlaps(a: str, b: str) -> bool:

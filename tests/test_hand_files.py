@@ -32,7 +32,9 @@ def test_an_mjcf_lists_its_includes_and_the_meshes_of_its_compiler_meshdir():
     assert names[0] == "reach.xml"
     assert {"robot.xml", "shared.xml", "shared_asset.xml"} <= set(names)
     meshes = [f for f in files if f.suffix == ".stl"]
-    assert meshes and all(f.parent.name == "hand" and f.parent.parent.name == "stls" for f in meshes)
+    assert meshes and all(
+        f.parent.name == "hand" and f.parent.parent.name == "stls" for f in meshes
+    )
     assert len(names) == len(set(files))
 
 
@@ -92,7 +94,9 @@ def test_the_stages_load_the_copy_and_refuse_a_missing_or_stale_one(tmp_path):
     # The copy gives the hand the original gives: same joints, same forward kinematics.
     copied, original = RobotHand(spec, None), RobotHand(params.hand, None)
     assert copied.joint_names == original.joint_names
-    q = original.zero(3) + 0.1 * torch.rand(3, original.dof, generator=torch.Generator().manual_seed(0))
+    q = original.zero(3) + 0.1 * torch.rand(
+        3, original.dof, generator=torch.Generator().manual_seed(0)
+    )
     np.testing.assert_allclose(copied.keypoints(q), original.keypoints(q), atol=1e-12)
 
     other, _ = load_hand_spec("allegro")

@@ -264,12 +264,19 @@ def test_sequence_names_may_hold_dots(tmp_path):
 
 def test_bench_runs_every_dvc_stage_in_dvc_order(stages, tmp_path):
     """`dexflow bench pipeline|real` time the pipeline that `dvc repro` runs: the same stages
-    (``foreach`` items expanded), in dvc.yaml's order; only the report is left out."""
+    (``foreach`` items expanded), in the order dexflow.sweep runs them (dvc.yaml's, a stage
+    after those whose outputs it reads); only the report is left out."""
+    from dvc.utils.serialize import load_yaml
+
     from dexflow.bench import _pipeline_stages
     from dexflow.config import load_params
+    from dexflow.sweep import load_stages
 
     params = load_params(Path(__file__).parents[1] / "params.yaml")
     names = [name for name, _ in _pipeline_stages(params, Layout.of("data", root=tmp_path))]
     dvc = yaml.safe_load((Path(__file__).parents[1] / "dvc.yaml").read_text())
     assert next(iter(dvc["stages"])) == "demo"  # ``stages`` leaves the demo out: no sequences
-    assert names == ["demo", *(name for name in stages if name != "report")]
+    assert sorted(names) == sorted(["demo", *(name for name in stages if name != "report")])
+    root = Path(__file__).parents[1]
+    order = [s.name for s in load_stages(root / "dvc.yaml", load_yaml(root / "params.yaml"))]
+    assert names == [n.replace("demo@demo", "demo") for n in order if n != "report"]

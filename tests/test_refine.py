@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import itertools
+import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,11 +13,18 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from dexflow.contact import _contact_map, finger_distances
+from dexflow.errors import ArtifactError
 from dexflow.hands import load_hand
 from dexflow.human.keypoints import FINGERTIPS
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import RefineParams
-from dexflow.refine import TorchSDF, energy_terms, refine_trajectory, release_hand
+from dexflow.refine import (
+    TorchSDF,
+    energy_terms,
+    grip_trajectory,
+    refine_trajectory,
+    release_hand,
+)
 
 FRAMES = 3
 
@@ -399,3 +408,57 @@ def test_torch_sdf_gives_the_grids_values_and_the_exact_gradient_in_and_around_t
         step[axis] = eps
         fd = (sdf(inside.detach() + step) - sdf(inside.detach() - step)) / (2 * eps)
         torch.testing.assert_close(grad[:, axis], fd, atol=1e-5, rtol=1e-5)
+
+
+def _touching_scene(hand, frames: int = 6):
+    """The index pad on a box's face in ``frames`` frames, in contact, with its contact map."""
+    q, pose, box, grid = _scene(hand, 0.0)
+    q, pose = np.repeat(q[:1], frames, 0), np.repeat(pose[:1], frames, 0)
+    contact = np.zeros((frames, 4), dtype=bool)
+    contact[:, list(hand.spec.fingers).index("index")] = True
+    _, dist, local = finger_distances(hand, q, pose, grid)
+    points, faces = trimesh.sample.sample_surface(box, 4000, seed=0)
+    masks = list(hand.finger_point_masks.values())
+    cmap = _contact_map(local, dist, contact, masks, cKDTree(points), box.face_normals[faces], 8)
+    return q, pose, grid, contact, cmap
+
+
+def test_grip_presses_the_contact_fingers_in_from_the_given_frame_on(allegro):
+    """Where physics lost the object, refine.grip_m presses the fingers in contact that far
+    into it, from the start frame on; the frames before stay as they were."""
+    q, pose, grid, contact, cmap = _touching_scene(allegro)
+    params = RefineParams(grip_m=0.004, blend_frames=0.0, iterations=80)
+    q1 = grip_trajectory(allegro, q, pose, TorchSDF(grid), contact, cmap, params, start=3)
+    np.testing.assert_array_equal(q1[:3], q[:3])
+    depth = _index_distance(allegro, q1, pose, grid)
+    assert np.all(np.abs(_index_distance(allegro, q, pose, grid)) < 0.0015)
+    assert np.all(depth[3:] < -0.002) and np.all(depth[3:] > -0.007), depth
+    moved = np.flatnonzero(np.abs(q1 - q).max(axis=0) > 1e-12)
+    assert set(moved) <= set(allegro.fingers["index"]) and len(moved) > 0
+    # ramped in over blend_frames where it starts: no step at the start frame
+    ramped = grip_trajectory(
+        allegro, q, pose, TorchSDF(grid), contact, cmap, replace(params, blend_frames=2.0), 3
+    )
+    jump = np.abs(np.diff(ramped[:, 6:], axis=0)).max(axis=1)
+    assert jump.max() < np.abs(q1[3, 6:] - q1[2, 6:]).max()
+    # a start past the last contact changes nothing
+    np.testing.assert_array_equal(
+        grip_trajectory(allegro, q, pose, TorchSDF(grid), contact, cmap, params, start=6), q
+    )
+
+
+def test_refine_reads_where_replay_lost_the_object_and_says_when_it_cannot(tmp_path):
+    from dexflow.io.layout import Layout
+    from dexflow.refine import _lost_frames
+
+    layout = Layout.of(tmp_path / "data", root=tmp_path)
+    with pytest.raises(ArtifactError, match=r"grip_m > 0 needs stage replay@retarget"):
+        _lost_frames(layout)
+    summary = layout.replay("retarget").summary
+    summary.parent.mkdir(parents=True)
+    summary.write_text(json.dumps({"sequences": {
+        "a": {"replayed": True, "lost": True, "lost_frame": 40},
+        "b": {"replayed": True, "lost": False, "lost_frame": -1},
+        "c": {"replayed": False, "frames": 0},
+    }}))  # fmt: skip
+    assert _lost_frames(layout) == {"a": 40, "b": -1}
