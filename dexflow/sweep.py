@@ -2,7 +2,8 @@
 
 ``python -m dexflow.sweep -m contact.dis_min_m=0.008,0.010,0.012`` (or ``dexflow-sweep``)
 composes ``conf/`` once per job, exactly as ``dvc exp run -S`` would, and runs the stages of
-``dvc.yaml`` in order inside the job's directory (``multirun/<date>/<time>/<job>/``). A stage is
+``dvc.yaml`` in dependency order (file order, a stage after those whose outputs it reads) inside
+the job's directory (``multirun/<date>/<time>/<job>/``). A stage is
 reused instead of run when
 
 - its declared ``params`` have the same values in the job as in the project's ``params.yaml``

@@ -348,7 +348,7 @@ def test_failed_jobs_are_recorded_while_the_others_complete(project):
 
     job, status = by_params[5, "data/missing"]
     assert status["status"] == "failed" and status["stage"] == "scale_align"
-    assert status["error"] and status["reused"] == ["demo@demo"] and status["ran"] == []
+    assert status["error"] and status["reused"] == ["demo@demo", "hand"] and status["ran"] == []
 
     job, status = by_params[5, "data/demo"]
     assert status == {"status": "ok", "stage": None, "error": None, "ran": [],
