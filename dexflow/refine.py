@@ -55,7 +55,8 @@ object after everything above (:func:`grip_trajectory`), since a position-contro
 only as hard as its target lies inside the object. Measured (12 sequences each, Shadow,
 ``grip_m`` 0 / 5 / 10 mm, the refined trajectory replayed): DexYCB dev captures held the object
 for 10.5 / 7.9 / 8.2 % of the grasp and carried 1 / 1 / 0 of 12, with PD 0.84 / 5.4 / 7.1 mm
-and SSR 50 / 0 / 0 %; the demo held 42 / 45 / 47 % and carried 0 / 0 / 1, PD 1.0 / 3.4 / 4.9 mm,
+and SSR 50 / 0 / 0 % (Allegro: held 11.1 / 7.0 / 10.8 %, carried none, PD 0.76 / 7.1 / 8.7 mm,
+SSR 25 / 0 / 0 %); the demo held 42 / 45 / 47 % and carried 0 / 0 / 1, PD 1.0 / 3.4 / 4.9 mm,
 SSR 25 / 8 / 8 %. No gain beyond one sequence, a clear loss in penetration and SSR: off.
 
 **Windows.** A sequence longer than ``window_frames`` is refined window by window (overlapping
