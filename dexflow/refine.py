@@ -298,26 +298,35 @@ def _refine_whole(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`refine_trajectory` of one window (or of a whole short sequence): release, the
     per-finger step, blending, release again. Same arguments and returns."""
-    fingers = list(hand.spec.fingers)
     inv = torch.as_tensor(np.linalg.inv(obj_pose), dtype=hand.dtype)
     q_start = q_init
     if params.release:
         q_start = release_hand(hand, q_init, inv, sdf, contact, params, rounds=1)
+    q, energy_before, energy_after = _finger_step(hand, q_start, inv, sdf, contact, cmap, params)
+    if params.release:
+        q = release_hand(hand, q, inv, sdf, contact, params, reference=q_init)
+    return q, energy_before, energy_after
+
+
+def _finger_step(hand, q_start, world_to_obj, sdf, contact, cmap, params):
+    """The per-finger step from ``q_start (T, dof)``: every finger of ``params.finger_order``
+    in turn, in the frames where it is in contact; then the change blended over time.
+
+    Returns:
+        The trajectory (T, dof), per-frame energies before and after (T,).
+    """
+    fingers = list(hand.spec.fingers)
     q = torch.as_tensor(q_start, dtype=hand.dtype).clone()
     rng = np.random.default_rng(0)
     energy_before = np.zeros(len(q))
     energy_after = np.zeros(len(q))
-
     for name in params.finger_order:
         if name in fingers:
-            _refine_finger(
-                hand, q, name, contact, cmap, inv, sdf, params, rng, energy_before, energy_after
-            )
+            _refine_finger(hand, q, name, contact, cmap, world_to_obj, sdf, params, rng,
+                           energy_before, energy_after)  # fmt: skip
     q = q.numpy()
     if params.blend_frames > 0:
         q = _blend(hand, q_start, q, params.blend_frames)
-    if params.release:
-        q = release_hand(hand, q, inv, sdf, contact, params, reference=q_init)
     return q, energy_before, energy_after
 
 
@@ -601,16 +610,7 @@ def grip_trajectory(
     )
     gripping = replace(params, w_pen=0.0, w_align=0.0)
     inv = torch.as_tensor(np.linalg.inv(obj_pose), dtype=hand.dtype)
-    out = torch.as_tensor(q, dtype=hand.dtype).clone()
-    rng = np.random.default_rng(0)
-    unused = np.zeros(len(q))
-    fingers = list(hand.spec.fingers)
-    for name in params.finger_order:
-        if name in fingers:
-            _refine_finger(hand, out, name, touching, pressed, inv, sdf, gripping, rng, unused,
-                           unused.copy())  # fmt: skip
-    gripped = out.numpy()
-    return _blend(hand, q, gripped, params.blend_frames) if params.blend_frames > 0 else gripped
+    return _finger_step(hand, q, inv, sdf, touching, pressed, gripping)[0]
 
 
 def _blend(hand: RobotHand, q_init: np.ndarray, q: np.ndarray, sigma: float) -> np.ndarray:
