@@ -5,7 +5,7 @@ installed package, or a file of the user's. DVC sees none of these, so editing a
 limit, a mesh) would leave ``dvc status`` clean and the trajectories stale. This stage is
 ``always_changed`` in ``dvc.yaml``: every ``dvc repro`` runs it (well under a second: it only
 reads and copies the files), and DVC reruns the stages downstream exactly when the copy's bytes
-changed. Those stages load the hand from the copy (:func:`dexflow.hands.robot.staged_hand`), so
+changed. Those stages load the hand from the copy (:func:`dexflow.hands.files.staged_spec`), so
 what they read is what DVC hashed.
 """
 

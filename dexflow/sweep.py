@@ -266,11 +266,7 @@ def load_stages(dvc_yaml: str | Path, params: Mapping[str, Any]) -> list[Stage]:
 def _in_dependency_order(stages: list[Stage], where: str | Path) -> list[Stage]:
     """``stages`` reordered so that every stage comes after those whose outputs it depends on;
     otherwise in file order (the first stage that can run next runs next)."""
-    producers = {
-        s.name: {o.name for o in stages if o is not s
-                 and any(_overlaps(dep, out) for dep in s.deps for out in o.outputs)}
-        for s in stages
-    }  # fmt: skip
+    producers = {s.name: {o.name for o in stages if _reads(s, o)} for s in stages}
     ordered: list[Stage] = []
     placed: set[str] = set()
     while len(ordered) < len(stages):
@@ -290,16 +286,20 @@ def _overlaps(a: str, b: str) -> bool:
     return pa[:n] == pb[:n]
 
 
+def _reads(stage: Stage, other: Stage) -> bool:
+    """Whether ``stage`` depends on an output of ``other`` (a dep equal to, inside or containing
+    one of them)."""
+    return other is not stage and any(
+        _overlaps(dep, out) for dep in stage.deps for out in other.outputs
+    )
+
+
 def upstream_stages(stages: list[Stage]) -> dict[str, list[str]]:
     """For each stage, the earlier stages whose outputs it depends on (a dep equal to, inside
     or containing one of their outputs)."""
     upstream: dict[str, list[str]] = {}
     for i, stage in enumerate(stages):
-        upstream[stage.name] = [
-            other.name
-            for other in stages[:i]
-            if any(_overlaps(dep, out) for dep in stage.deps for out in other.outputs)
-        ]
+        upstream[stage.name] = [other.name for other in stages[:i] if _reads(stage, other)]
     return upstream
 
 
