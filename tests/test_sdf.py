@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from dexflow.objects.sdf import SignedDistanceGrid, signed_distance, winding_number
+from dexflow.objects.sdf import SignedDistanceGrid, _nodes, signed_distance, winding_number
 
 
 def _holed(mesh: trimesh.Trimesh, below: float) -> trimesh.Trimesh:
@@ -94,3 +94,31 @@ def test_grid_outside_bounds_never_underestimates():
     grid = SignedDistanceGrid.from_mesh(box, spacing=0.004, padding=0.01)
     far = np.array([[0.5, 0.0, 0.0], [0.0, -0.3, 0.2]])
     assert (grid.query(far) >= _box_sdf(far, np.full(3, 0.02)) - 1e-6).all()
+
+
+@pytest.mark.parametrize("shape", ["mug", "holed_sphere", "box"])
+def test_grid_signs_equal_every_node_evaluated(shape):
+    """The grid's coarse-to-fine signs are those of the winding number at every node, for
+    closed meshes and meshes with holes (a handle and an open cavity; a missing cap). Nodes
+    whose winding number is 0.5 to rounding (in the plane of a hole) have no side."""
+    if shape == "mug":
+        body = trimesh.creation.cylinder(radius=0.04, height=0.09, sections=48)
+        cavity = trimesh.creation.cylinder(radius=0.036, height=0.09, sections=48)
+        cavity.apply_translation((0, 0, 0.006))
+        handle = trimesh.creation.torus(major_radius=0.026, minor_radius=0.006)
+        handle.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+        handle.apply_translation((0.05, 0, 0))
+        mesh = _holed(body.union(handle).difference(cavity), below=-0.044)
+    elif shape == "holed_sphere":
+        mesh = _holed(trimesh.creation.icosphere(subdivisions=4, radius=0.05), below=-0.042)
+    else:
+        mesh = trimesh.creation.box(extents=(0.09, 0.05, 0.13))
+    grid = SignedDistanceGrid.from_mesh(mesh, spacing=0.002, padding=0.03)
+    axes = [grid.origin[i] + grid.spacing * np.arange(n) for i, n in enumerate(grid.values.shape)]
+    nodes = _nodes(axes)
+    winding = winding_number(mesh, nodes).reshape(grid.values.shape)
+    exact = np.abs(signed_distance(mesh, nodes)).reshape(grid.values.shape)
+    np.testing.assert_allclose(np.abs(grid.values), exact, atol=1e-7)
+    decided = (np.abs(winding - 0.5) > 1e-6) & (exact > 1e-9)  # not on the surface
+    assert decided.mean() > 0.95
+    assert np.array_equal((grid.values < 0)[decided], (winding > 0.5)[decided])
