@@ -348,7 +348,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="generate demo sequences into a directory")
     p.add_argument("out")
     p.add_argument("--objects", nargs="*", help="stand-in names (default: all)")
-    p.add_argument("--sequences-per-object", type=int, default=3)
+    p.add_argument(
+        "--sequences-per-object", type=int, default=2, help="3 = every grasp type (the full demo)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=1)
     p.set_defaults(func=_cmd_demo)

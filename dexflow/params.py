@@ -140,7 +140,7 @@ class DemoConfig:
 
     seed: int = 0
     objects: list[str] = field(default_factory=list)
-    sequences_per_object: int = 3
+    sequences_per_object: int = 2
     fps: float = 30.0
     min_frames: int = 60
     max_frames: int = 150

@@ -47,7 +47,8 @@ def project(tmp_path_factory) -> Path:
             shutil.copy2(ROOT / rel, dst / rel)
     demo = dst / "conf" / "demo" / "default.yaml"
     text = demo.read_text().replace("objects: []", "objects: [061_foam_brick]")
-    demo.write_text(text.replace("sequences_per_object: 3", "sequences_per_object: 2"))
+    assert "sequences_per_object: 2" in text  # two sequences of the one object
+    demo.write_text(text)
     simulate = dst / "conf" / "simulate" / "default.yaml"
     simulate.write_text(simulate.read_text().replace("max_frames: 0", "max_frames: 3"))
     _run([sys.executable, "-m", "dexflow.cli", "params"], dst)

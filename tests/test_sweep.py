@@ -284,7 +284,7 @@ def project(tmp_path_factory) -> Path:
     _copy_project(dst)
     demo = dst / "conf" / "demo" / "default.yaml"
     _edit(demo, "objects: []", "objects: [061_foam_brick]")
-    _edit(demo, "sequences_per_object: 3", "sequences_per_object: 1")
+    _edit(demo, "sequences_per_object: 2", "sequences_per_object: 1")
     _edit(demo, "min_frames: 60", "min_frames: 30")
     _edit(demo, "max_frames: 150", "max_frames: 40")
     _edit(dst / "conf" / "simulate" / "default.yaml", "max_frames: 0", "max_frames: 3")
