@@ -230,7 +230,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         bench_long(lengths, args.out_long)
     elif args.what == "pipeline":
         workers = tuple(int(w) for w in args.workers.split(","))
-        bench_pipeline(args.sequences, workers, args.out, args.root, args.subset)
+        scales = tuple(int(k) for k in args.scales.split(","))
+        bench_pipeline(args.sequences, workers, args.out, args.root, args.subset, scales)
     elif args.what == "fk":
         bench_fk(args.hands or None, repeats=args.repeats)
     elif args.what == "simulate":
@@ -419,6 +420,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="real (required), pipeline (optional): root of converted sequences (dexflow convert)",
     )  # fmt: skip
     p.add_argument("--workers", default="1,2", help="pipeline: worker counts, e.g. 1,2")
+    p.add_argument(
+        "--scales", default="1", help="pipeline (demo): data sizes, e.g. 1,4 (k x the sequences)"
+    )
     p.add_argument("--out", default="reports/bench.md", help="pipeline: report file")
     p.add_argument("--hands", nargs="*")
     p.add_argument("--repeats", type=int, default=20)

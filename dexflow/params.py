@@ -472,6 +472,7 @@ class SimulateParams:
     push_m: float = 0.005
     contact_margin_m: float = 0.005
     penetration_tol_m: float = 0.002
+    test_over_tolerance: bool = False
     max_displacement_m: float = 0.05
     max_rotation_deg: float = 15.0
     drop_distance_m: float = 0.02

@@ -165,7 +165,9 @@ def write_summary(
         *_engines_section(stage),
         "A tested frame counts only if it starts with the hand at most `simulate.penetration_tol_m` "
         "inside the object (links wedged inside an object hold it without a grasp); *without the "
-        "rule* counts every tested frame. Starting penetration is the deepest point of the hand's "
+        "rule* counts every tested frame, and is shown only with `simulate.test_over_tolerance: "
+        "true` (by default the frames over the tolerance, which cannot count, are not tested: "
+        "their deep overlaps are the engine's slowest steps). Starting penetration is the deepest point of the hand's "
         "collision geometry inside the object's mesh (signed distance, the definition of PD); the "
         "overlap with the convex parts the physics uses (which bulge beyond a scanned mesh by "
         "millimetres) is shown beside it.",

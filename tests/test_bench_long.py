@@ -61,3 +61,27 @@ def test_the_pipeline_table_on_user_data_has_no_demo_row_and_names_the_command()
         in text
     )
     assert "| refine | 20.0 s, 32 f/s, 62 % |" in text
+
+
+def test_the_pipeline_table_at_two_data_sizes_shows_speed_ups_and_growth():
+    from dexflow.bench import _bench_table
+
+    def run(workers, scale):
+        # scale_align is per object (the same at both sizes); the rest grows with the frames
+        seconds = {"demo": 3.0, "scale_align": 8.0 / workers, "refine": 40.0 * scale / workers}
+        return {"workers": workers, "scale": scale, "seconds": seconds, "frames": 400 * scale,
+                "evaluated": 10, "objects": 2, "peak_rss_mb": 700.0}  # fmt: skip
+
+    runs = [run(1, 1), run(2, 1), run(1, 4), run(2, 4)]
+    lines = _bench_table(runs, "dexflow bench pipeline --scales 1,4", "x")
+    text = "\n".join(lines)
+    assert "(2 objects, 400 frames at ×1, 1600 frames at ×4)" in text
+    head = next(x for x in lines if x.startswith("| stage |"))
+    assert head.count("|") == 9  # stage, 4 runs, 2 speed-ups, growth: 8 columns
+    assert "| refine | 40.0 s, 10 f/s, 83 % | 20.0 s, 20 f/s, 83 % |" in text
+    assert next(x for x in lines if x.startswith("| refine |")).endswith("| 2.00x | 2.00x | 4.00 |")
+    # 2 workers: 24 s at x1, 84 s at x4; without scale_align 20 -> 80 s
+    assert "×4 the frames took ×3.50 the time with 2 workers; without scale_align" in text
+    assert "objects) ×4.00." in text
+    # the estimate comes from the largest run: 80 s / 1600 frames = 50 ms per frame
+    assert "from 2 worker(s) ×4: 50.0 ms per frame after scale_align plus 2 s per object" in text

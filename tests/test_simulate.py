@@ -28,8 +28,9 @@ from .test_hands import _gripper
 
 BOX = (0.024, 0.024, 0.03)  # sits on the gripper's palm, between its three fingers
 # The single nominal trial per frame: these tests are about the protocol and the sequence logic;
-# robust success under perturbations has tests of its own.
-SINGLE = SimulateParams(perturbations=PerturbationParams(count=0))
+# robust success under perturbations has tests of its own. Frames over the penetration tolerance
+# are tested too (the uncounted ``*_raw`` results); skipping them has a test of its own.
+SINGLE = SimulateParams(perturbations=PerturbationParams(count=0), test_over_tolerance=True)
 
 
 @pytest.fixture(scope="module")
@@ -151,6 +152,32 @@ def test_penetrating_start_does_not_count_and_sequence_logic(scene, box_sdf):
     empty, none = simulate_sequence(world_1, q, poses, first_contact=-1, sdf=box_sdf)
     assert empty["pybullet.touching"].shape == (0, 3) and empty["pybullet.held"].shape == (0, 6)
     assert none["evaluated"] == 0 and not none["success_contact"]
+
+
+def test_frames_over_the_tolerance_are_skipped_by_default_with_the_same_success(scene, box_sdf):
+    """By default a frame starting over the penetration tolerance is not tested (it cannot
+    count): the same counted success, frame and penetration statistics; no raw results."""
+    hand, world, pose, folder = scene
+    closed = _closed(hand, world, pose)
+    sunk = pose.copy()
+    sunk[2, 3] -= 0.004  # 4 mm into the palm
+    q = np.stack([_opened(hand), closed, closed, closed])
+    poses = np.stack([pose, pose, sunk, pose])
+    results = {}
+    for test_all in (True, False):
+        params = dataclasses.replace(world.params, stride=1, test_over_tolerance=test_all)
+        assert SimulateParams().test_over_tolerance is False  # the default skips
+        skipping = GraspWorld(hand, hand_urdf(hand), params)
+        skipping.set_object(folder / "box.obj")
+        results[test_all] = simulate_sequence(skipping, q, poses, 2, box_sdf)
+    (tested, every), (arrays, result) = results[True], results[False]
+    assert tested["frame"].tolist() == [2, 3] and arrays["frame"].tolist() == [3]
+    assert result["skipped"] == 1 and every["skipped"] == 0
+    for key in ("success_contact", "success_bench", "success_frame", "over_tolerance",
+                "penetration_mean_mm"):  # fmt: skip
+        assert result[key] == every[key], key
+    assert result["over_tolerance"] == 0.5  # frames 2 (4 mm in) and 3 considered
+    assert every["success_contact_raw"] and result["success_contact_raw"] is None
 
 
 def test_convex_parts_round_trip_and_mass_frame_of_the_union(tmp_path):
