@@ -42,6 +42,28 @@ def test_every_group_option_composes_and_validates(tmp_path, override):
         assert params.hand.name == option
 
 
+def test_the_full_demo_differs_from_the_default_only_in_its_size(tmp_path):
+    """``demo=full`` keeps every setting of the default demo and makes 3 sequences per object
+    (every grasp type each stand-in lists); the default makes 2."""
+    import yaml
+
+    from dexflow.data.ycb_standins import STANDINS
+
+    trees = {
+        option: _leaves(
+            yaml.safe_load(compose_params([f"demo={option}"], tmp_path / f"{option}.yaml",
+                                          config_dir=ROOT / "conf").read_text())
+        )
+        for option in ("default", "full")
+    }  # fmt: skip
+    changed = {k for k in trees["full"] if trees["full"][k] != trees["default"].get(k)}
+    assert changed == {"demo.sequences_per_object"}
+    assert trees["default"]["demo.sequences_per_object"] == 2
+    assert trees["full"]["demo.sequences_per_object"] == max(
+        len(s.grasps) for s in STANDINS.values()
+    )
+
+
 def _leaves(tree: dict, prefix: str = "") -> dict:
     out = {}
     for key, value in tree.items():
