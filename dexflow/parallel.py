@@ -20,10 +20,11 @@ import logging
 import os
 import traceback
 from collections.abc import Callable, Iterable
+from contextlib import nullcontext
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
-from joblib import Parallel, delayed
+from joblib import Parallel, delayed, parallel_config
 from tqdm.auto import tqdm
 
 from dexflow.errors import ConfigError, DexflowError
@@ -105,6 +106,7 @@ def map_items(
     run: int | RunParams = 1,
     desc: str = "items",
     progress: bool = True,
+    threads: int | None = None,
 ) -> list[ItemResult[T]]:
     """Apply ``func`` to every item; never raises for an item's own error.
 
@@ -116,6 +118,10 @@ def map_items(
             process, more (or -1 for all cores) uses joblib processes.
         desc: Label of the progress bar and of the error log lines.
         progress: Show a tqdm progress bar.
+            threads: ``local`` backend: the OpenMP/BLAS threads each worker may use (joblib
+                otherwise gives each of N workers ``cores / N``). More than that suits items of
+                very unequal size whose native code is multithreaded: the last large item then
+                uses the cores the finished workers left idle.
 
     Returns:
         One :class:`ItemResult` per item, in input order. With fewer than two items every
@@ -131,7 +137,7 @@ def map_items(
                 results.append(_run(func, item))
                 bar.update()
         elif backend == "local":
-            results = _map_joblib(func, items, n_jobs, bar)
+            results = _map_joblib(func, items, n_jobs, bar, threads)
         elif backend == "ray":
             results = _map_ray(func, items, n_jobs, address, bar)
         else:
@@ -144,15 +150,20 @@ def map_items(
     return results
 
 
-def _map_joblib(func: Callable, items: list, n_jobs: int, bar: tqdm) -> list[ItemResult]:
-    """joblib processes. A worker that dies (killed by the OS for memory, a crash in native
-    code) breaks the pool: the items without a result then fail with ``retry``."""
-    runner = Parallel(n_jobs=n_jobs, return_as="generator")  # in input order, as they come
+def _map_joblib(
+    func: Callable, items: list, n_jobs: int, bar: tqdm, threads: int | None = None
+) -> list[ItemResult]:
+    """joblib processes (``threads``: see :func:`map_items`). A worker that dies (killed by the
+    OS for memory, a crash in native code) breaks the pool: the items without a result then
+    fail with ``retry``."""
     results: list[ItemResult] = []
+    config = parallel_config(backend="loky", inner_max_num_threads=threads) if threads else None
     try:
-        for result in runner(delayed(_run)(func, item) for item in items):
-            results.append(result)
-            bar.update()
+        with config or nullcontext():
+            runner = Parallel(n_jobs=n_jobs, return_as="generator")  # in input order, as they come
+            for result in runner(delayed(_run)(func, item) for item in items):
+                results.append(result)
+                bar.update()
     except Exception as exc:  # only the pool itself raises here (_run catches the items')
         reason = _reason(exc).splitlines()[0].split(". ")[0]
         log.error("worker pool failed after %d of %d items: %s", len(results), len(items), reason)

@@ -167,10 +167,10 @@ def write_summary(
         "inside the object (links wedged inside an object hold it without a grasp); *without the "
         "rule* counts every tested frame, and is shown only with `simulate.test_over_tolerance: "
         "true` (by default the frames over the tolerance, which cannot count, are not tested: "
-        "their deep overlaps are the engine's slowest steps). Starting penetration is the deepest point of the hand's "
-        "collision geometry inside the object's mesh (signed distance, the definition of PD); the "
-        "overlap with the convex parts the physics uses (which bulge beyond a scanned mesh by "
-        "millimetres) is shown beside it.",
+        "their deep overlaps are the engine's slowest steps). Starting penetration is the "
+        "deepest point of the hand's collision geometry inside the object's mesh (signed "
+        "distance, the definition of PD); the overlap with the convex parts the physics uses "
+        "(which bulge beyond a scanned mesh by millimetres) is shown beside it.",
         "",
         *_replay_section(stage, replay_dirs or {}, figures_dir, rel),
         "## Motion quality (paper Table III layout)",

@@ -62,9 +62,10 @@ inside), so by default they are not tested (``skipped``); their starting penetra
 measured and reported. With ``test_over_tolerance`` they are tested too and the uncounted
 result is kept (``*_raw``, ``ssr_raw``) so that reports can show what the tolerance removes;
 otherwise those are null. The counted SSRs are the same either way: a frame's result does not
-depend on the frames tested before it (below). A sequence succeeds (per criterion) if any evaluated frame at or after its first contact (stage
-contact) succeeds; frames are taken every ``stride`` frames and, with ``early_stop``, evaluation
-stops once both criteria have succeeded. SSR = the percentage of sequences that succeed.
+depend on the frames tested before it (below). A sequence succeeds (per criterion) if any
+evaluated frame at or after its first contact (stage contact) succeeds; frames are taken every
+``stride`` frames and, with ``early_stop``, evaluation stops once both criteria have succeeded.
+SSR = the percentage of sequences that succeed.
 
 Deterministic: every test starts from a freshly built world state with the same calls, so a
 frame's result does not depend on the frames tested before it.
