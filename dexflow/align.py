@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -243,7 +242,6 @@ def run_scale_align(params: PipelineParams, layout: Layout) -> dict:
         group="objects",
         name=lambda job: job.key,
         inputs=lambda job: [in_root / job.mesh_rel],
-        threads=os.cpu_count(),  # CoACD is OpenMP: one large mesh can use every core alone
     )
     objects = {r.item.key: r for r in object_results}
 

@@ -561,9 +561,10 @@ def _bench_table(runs: list[dict], command: str, what: str) -> list[str]:
         rest_growth = _per_frame(large) * large["frames"] / (_per_frame(growth) * growth["frames"])
         lines += [
             "",
-            f"×{scales[-1] // scales[0]} the frames took ×{total(large) / total(growth):.2f} the "
-            f"time with {large['workers']} workers; without scale_align (per object, the same "
-            f"objects) ×{rest_growth:.2f}.",
+            f"×{scales[-1] / scales[0]:g} the sequences ({growth['frames']} → {large['frames']} "
+            f"frames, ×{large['frames'] / growth['frames']:.2f}) took ×"
+            f"{total(large) / total(growth):.2f} the time with {large['workers']} workers; "
+            f"without scale_align (per object, the same objects) ×{rest_growth:.2f}.",
         ]
     per_object = large["seconds"]["scale_align"] / max(large["objects"], 1)
     per_frame = _per_frame(large)

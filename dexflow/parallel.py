@@ -20,11 +20,10 @@ import logging
 import os
 import traceback
 from collections.abc import Callable, Iterable
-from contextlib import nullcontext
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
-from joblib import Parallel, delayed, parallel_config
+from joblib import Parallel, delayed
 from tqdm.auto import tqdm
 
 from dexflow.errors import ConfigError, DexflowError
@@ -106,7 +105,6 @@ def map_items(
     run: int | RunParams = 1,
     desc: str = "items",
     progress: bool = True,
-    threads: int | None = None,
 ) -> list[ItemResult[T]]:
     """Apply ``func`` to every item; never raises for an item's own error.
 
@@ -118,10 +116,6 @@ def map_items(
             process, more (or -1 for all cores) uses joblib processes.
         desc: Label of the progress bar and of the error log lines.
         progress: Show a tqdm progress bar.
-            threads: ``local`` backend: the OpenMP/BLAS threads each worker may use (joblib
-                otherwise gives each of N workers ``cores / N``). More than that suits items of
-                very unequal size whose native code is multithreaded: the last large item then
-                uses the cores the finished workers left idle.
 
     Returns:
         One :class:`ItemResult` per item, in input order. With fewer than two items every
@@ -137,7 +131,7 @@ def map_items(
                 results.append(_run(func, item))
                 bar.update()
         elif backend == "local":
-            results = _map_joblib(func, items, n_jobs, bar, threads)
+            results = _map_joblib(func, items, n_jobs, bar)
         elif backend == "ray":
             results = _map_ray(func, items, n_jobs, address, bar)
         else:
@@ -150,20 +144,15 @@ def map_items(
     return results
 
 
-def _map_joblib(
-    func: Callable, items: list, n_jobs: int, bar: tqdm, threads: int | None = None
-) -> list[ItemResult]:
-    """joblib processes (``threads``: see :func:`map_items`). A worker that dies (killed by the
-    OS for memory, a crash in native code) breaks the pool: the items without a result then
-    fail with ``retry``."""
+def _map_joblib(func: Callable, items: list, n_jobs: int, bar: tqdm) -> list[ItemResult]:
+    """joblib processes. A worker that dies (killed by the OS for memory, a crash in native
+    code) breaks the pool: the items without a result then fail with ``retry``."""
+    runner = Parallel(n_jobs=n_jobs, return_as="generator")  # in input order, as they come
     results: list[ItemResult] = []
-    config = parallel_config(backend="loky", inner_max_num_threads=threads) if threads else None
     try:
-        with config or nullcontext():
-            runner = Parallel(n_jobs=n_jobs, return_as="generator")  # in input order, as they come
-            for result in runner(delayed(_run)(func, item) for item in items):
-                results.append(result)
-                bar.update()
+        for result in runner(delayed(_run)(func, item) for item in items):
+            results.append(result)
+            bar.update()
     except Exception as exc:  # only the pool itself raises here (_run catches the items')
         reason = _reason(exc).splitlines()[0].split(". ")[0]
         log.error("worker pool failed after %d of %d items: %s", len(results), len(items), reason)

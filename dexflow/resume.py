@@ -252,7 +252,6 @@ class StageOutput:
         group: str = "sequences",
         name: Callable[[Any], str] = _stem,
         inputs: Callable[[Any], list[Path]] | None = None,
-        threads: int | None = None,
     ) -> list[ItemResult]:
         """:func:`dexflow.parallel.map_items`, skipping the items an interrupted run completed.
 
@@ -267,7 +266,6 @@ class StageOutput:
             name: The item's name (by default the file's stem).
             inputs: The files an item reads (by default ``<root>/sequences/<name>.npz`` of
                 every input root).
-            threads: Native threads per worker (:func:`dexflow.parallel.map_items`).
 
         Returns:
             One result per item, in input order; reused items carry their recorded value.
@@ -302,7 +300,6 @@ class StageOutput:
             [items[i] for i in todo],
             run,
             desc or self.stage,
-            threads=threads,
         )
         by_index = dict(zip(todo, computed, strict=True))
         for result in computed:

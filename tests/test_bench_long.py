@@ -81,7 +81,9 @@ def test_the_pipeline_table_at_two_data_sizes_shows_speed_ups_and_growth():
     assert "| refine | 40.0 s, 10 f/s, 83 % | 20.0 s, 20 f/s, 83 % |" in text
     assert next(x for x in lines if x.startswith("| refine |")).endswith("| 2.00x | 2.00x | 4.00 |")
     # 2 workers: 24 s at x1, 84 s at x4; without scale_align 20 -> 80 s
-    assert "×4 the frames took ×3.50 the time with 2 workers; without scale_align" in text
+    assert (
+        "×4 the sequences (400 → 1600 frames, ×4.00) took ×3.50 the time with 2 workers; " in text
+    )
     assert "objects) ×4.00." in text
     # the estimate comes from the largest run: 80 s / 1600 frames = 50 ms per frame
     assert "from 2 worker(s) ×4: 50.0 ms per frame after scale_align plus 2 s per object" in text

@@ -89,23 +89,6 @@ def test_map_items_keeps_order_and_reports_each_error(run):
     assert results[3].entry() == {"status": "failed", "error": "ValueError: item 3 is bad"}
 
 
-def _omp_threads(_item) -> str | None:
-    import os
-
-    return os.environ.get("OMP_NUM_THREADS")
-
-
-def test_local_workers_get_the_native_threads_asked_for():
-    """joblib gives each of N workers cores / N OpenMP threads; ``threads`` raises that (stage
-    scale_align: CoACD on one large mesh can then use the cores the other workers left)."""
-    import os
-
-    default = map_items(_omp_threads, range(2), RunParams("local", 2), progress=False)
-    assert {r.value for r in default} == {str(max(1, os.cpu_count() // 2))}
-    wide = map_items(_omp_threads, range(2), RunParams("local", 2), progress=False, threads=3)
-    assert {r.value for r in wide} == {"3"}
-
-
 def test_ray_is_optional_and_named_when_missing(monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
     with pytest.raises(ImportError, match=r"pip install -e '\.\[ray\]'"):
