@@ -229,8 +229,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                              f"{args.frames!r})") from None  # fmt: skip
         bench_long(lengths, args.out_long)
     elif args.what == "pipeline":
-        workers = tuple(int(w) for w in args.workers.split(","))
-        scales = tuple(int(k) for k in args.scales.split(","))
+        try:
+            workers = tuple(int(w) for w in args.workers.split(","))
+            scales = tuple(int(k) for k in args.scales.split(","))
+        except ValueError:
+            raise SystemExit(f"dexflow bench pipeline --workers/--scales: whole numbers, e.g. 1,2 "
+                             f"and 1,4 (got {args.workers!r}, {args.scales!r})") from None  # fmt: skip
         bench_pipeline(args.sequences, workers, args.out, args.root, args.subset, scales)
     elif args.what == "fk":
         bench_fk(args.hands or None, repeats=args.repeats)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from dexflow.bench import _long_sequence, _long_table
 from dexflow.io.sequence import load_sequence, save_sequence
@@ -87,3 +88,18 @@ def test_the_pipeline_table_at_two_data_sizes_shows_speed_ups_and_growth():
     assert "objects) ×4.00." in text
     # the estimate comes from the largest run: 80 s / 1600 frames = 50 ms per frame
     assert "from 2 worker(s) ×4: 50.0 ms per frame after scale_align plus 2 s per object" in text
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--scales", "x"], "whole numbers"),
+        (["--scales", "0"], "whole numbers >= 1"),
+        (["/nowhere", "--scales", "1,4"], "no sequences/ folder"),
+    ],
+)
+def test_bench_pipeline_refuses_bad_scales_before_running_anything(argv, words, tmp_path):
+    from dexflow.cli import main
+
+    with pytest.raises((SystemExit, ValueError, FileNotFoundError), match=words):
+        main(["bench", "pipeline", *argv])
