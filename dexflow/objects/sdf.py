@@ -13,13 +13,15 @@ For the batched, repeated queries of later stages the field is sampled once on a
 
 The winding number is the grid's largest cost (about 4x the distances), so the grid's signs are
 found coarse to fine (:func:`_grid_winding`): a node whose distance to the surface exceeds the
-diagonal of the coarser grid's cell around it, and whose cell corners all agree, has no surface
-anywhere in that cell, so it takes the corners' side; only the nodes near the surface, or in a
-cell whose corners disagree, are evaluated. For a closed mesh that is exact. For a mesh with
-holes the winding number is continuous away from the surface, and a cell without surface whose
-corners all lie on one side of 0.5 could only hide the other side in a pocket smaller than the
-cell, which the field of a hole (smooth over the hole's size) does not have; the test suite
-checks the signs equal the full evaluation on closed and holed meshes.
+diagonal of the coarser grid's cell around it has no surface anywhere in that cell; if the
+cell's corners all wind clearly (by more than :data:`_SURE`) on one side of 0.5, the node takes
+their side. Only the nodes near the surface, or in a cell whose corners disagree or are not
+clear, are evaluated. For a closed mesh that is exact (the winding number is 0 or 1 off the
+surface). For a mesh with holes the winding number is continuous away from the surface, and a
+cell without surface whose corners all lie clearly on one side of 0.5 could only hide the other
+side in a pocket smaller than the cell, which the field of a hole (smooth over the hole's size)
+does not have; the test suite checks the signs equal the full evaluation on closed and holed
+meshes.
 """
 
 from __future__ import annotations
@@ -62,12 +64,8 @@ def _nodes(axes: list[np.ndarray]) -> np.ndarray:
 
 def _unsigned_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Exact distance from ``points (N, 3)`` to the nearest triangle."""
-    dist = np.empty(len(points))
-    for start in range(0, len(points), _CHUNK):
-        chunk = np.ascontiguousarray(points[start : start + _CHUNK])
-        sq, _, _ = igl.point_mesh_squared_distance(chunk, vertices, faces)
-        dist[start : start + len(chunk)] = np.sqrt(sq)
-    return dist
+    squared = [igl.point_mesh_squared_distance(c, vertices, faces)[0] for c in _chunks(points)]
+    return np.sqrt(np.concatenate(squared)) if squared else np.zeros(0)
 
 
 _DIRECT_NODES = 4096  # grids this small are evaluated node by node
