@@ -188,3 +188,21 @@ def test_default_demo_penetrates_like_dexycb(tmp_path):
     deepest = np.concatenate(deepest)
     assert 0.001 < np.median(deepest) < 0.008, np.median(deepest)  # DexYCB: ~4 mm
     assert 0.1 < (deepest > 0.01).mean() < 0.45, (deepest > 0.01).mean()  # DexYCB: ~28 %
+
+
+def test_the_default_demo_has_every_grasp_type(tmp_path):
+    """Each object's sequences cycle through its listed grasp types; the default demo's 2 per
+    object still list every type, and the lateral grasp (the bowl's second) is synthesised,
+    not replaced by a fallback."""
+    from dexflow.data.grasps import GRASP_TYPES
+    from dexflow.data.ycb_standins import STANDINS
+
+    per_object = DemoConfig().sequences_per_object
+    assert per_object == 2
+    listed = {g for s in STANDINS.values() for g in s.grasps[:per_object]}
+    assert listed == set(GRASP_TYPES)
+    generate_demo(
+        DemoConfig(seed=0, objects=["024_bowl"], sequences_per_object=per_object), tmp_path
+    )
+    names = sorted(p.stem for p in (tmp_path / "sequences").glob("*.npz"))
+    assert names == ["024_bowl__00_pinch", "024_bowl__01_lateral"]

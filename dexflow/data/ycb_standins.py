@@ -196,7 +196,9 @@ STANDINS: dict[str, Standin] = {
             "024_bowl",
             (161.4, 161.1, 55.0),
             _bowl,
-            ("pinch", "tripod", "lateral"),
+            # lateral second: the bowl's rim is the stand-in a lateral grasp holds best, and the
+            # default demo (2 sequences per object) then has every grasp type
+            ("pinch", "lateral", "tripod"),
             watertight=False,
         ),
         Standin(
