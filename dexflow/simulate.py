@@ -716,7 +716,7 @@ def run_simulate(params: PipelineParams, layout: Layout, label: str) -> dict:
         "engines": ",".join(sp.engines),
         "perturbations": sp.perturbations.count,
         "frames_evaluated": evaluated,
-        "frames_skipped": int(sum(s.get("skipped", 0) for s in ok)),
+        "frames_skipped": int(sum(s["skipped"] for s in ok)),
         "penetration_mean_mm": tally.mean("penetration_mean_mm"),
         "over_tolerance": tally.mean("over_tolerance", 0.0),
     }

@@ -73,21 +73,22 @@ _SURE = 0.25  # a cell's corners decide its nodes when all wind this far on one 
 
 
 def _grid_winding(
-    vertices: np.ndarray, faces: np.ndarray, axes: list[np.ndarray], distance: np.ndarray
-) -> np.ndarray:
-    """The winding number at each node of the grid ``axes`` (uniform, equal spacing), given
-    the nodes' ``distance`` to the surface, coarse to fine (module docstring): a node whose
-    coarse cell has no surface and whose corners all wind further than :data:`_SURE` from
-    0.5 on one side takes their mean; the others are evaluated. Same shape as ``distance``."""
-    shape = distance.shape
+    vertices: np.ndarray, faces: np.ndarray, axes: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The distance to the surface and the winding number at each node of the grid ``axes``
+    (uniform, equal spacing), the winding number coarse to fine (module docstring): a node
+    whose coarse cell has no surface and whose corners all wind further than :data:`_SURE`
+    from 0.5 on one side takes their mean; the others are evaluated. Arrays of the grid's
+    shape: (winding, distance)."""
+    shape = tuple(len(a) for a in axes)
+    nodes = _nodes(axes)
+    distance = _unsigned_distance(vertices, faces, nodes).reshape(shape)
     if distance.size <= _DIRECT_NODES or min(shape) < 3:
-        return _winding(vertices, faces, _nodes(axes)).reshape(shape)
+        return _winding(vertices, faces, nodes).reshape(shape), distance
     spacing = float(axes[0][1] - axes[0][0])
     # every second node, one more where needed so that the coarse cells cover the whole grid
     coarse_axes = [a[0] + 2 * spacing * np.arange((len(a) - 1) // 2 + 2) for a in axes]
-    coarse_shape = tuple(len(a) for a in coarse_axes)
-    coarse_distance = _unsigned_distance(vertices, faces, _nodes(coarse_axes))
-    coarse = _grid_winding(vertices, faces, coarse_axes, coarse_distance.reshape(coarse_shape))
+    coarse = _grid_winding(vertices, faces, coarse_axes)[0]
     i, j, k = np.meshgrid(*[np.arange(n) // 2 for n in shape], indexing="ij")  # cell per node
     corners = np.stack(
         [coarse[i + a, j + b, k + c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], axis=-1
@@ -97,8 +98,8 @@ def _grid_winding(
     todo = ~(sure & (distance > 2 * spacing * np.sqrt(3.0)))  # else: no surface in the cell
     winding = corners.mean(axis=-1)
     if todo.any():
-        winding[todo] = _winding(vertices, faces, _nodes(axes).reshape(*shape, 3)[todo])
-    return winding
+        winding[todo] = _winding(vertices, faces, nodes.reshape(*shape, 3)[todo])
+    return winding, distance
 
 
 def _winding(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -144,11 +145,8 @@ class SignedDistanceGrid:
         hi = mesh.bounds[1] + padding
         counts = np.ceil((hi - lo) / spacing).astype(int) + 1
         axes = [lo[i] + spacing * np.arange(counts[i]) for i in range(3)]
-        vertices, faces = _mesh_arrays(mesh)
-        distance = _unsigned_distance(vertices, faces, _nodes(axes))
-        distance = distance.reshape(tuple(counts))
-        inside = _grid_winding(vertices, faces, axes, distance) > 0.5
-        values = np.where(inside, -distance, distance)
+        winding, distance = _grid_winding(*_mesh_arrays(mesh), axes)
+        values = np.where(winding > 0.5, -distance, distance)
         return cls(
             origin=lo.astype(np.float64), spacing=float(spacing), values=values.astype(np.float32)
         )
