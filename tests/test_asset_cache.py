@@ -90,3 +90,28 @@ def test_a_damaged_entry_is_decomposed_again_and_replaced(tmp_path, monkeypatch,
     assert np.array_equal(_vertices(first), _vertices(again))
     cached_convex_decomposition(_mesh(), **SETTINGS)
     assert len(calls) == 2  # replaced by a good entry
+
+
+def test_coacd_uses_every_core_inside_a_one_thread_worker_with_the_same_parts(monkeypatch):
+    """A pool worker is limited to one OpenMP thread; CoACD is given one per core, and its parts
+    do not depend on that."""
+    import os
+
+    import coacd
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    cores = os.cpu_count()
+    seen: list[int] = []
+    original = coacd.run_coacd
+
+    def recorded(*args, **kwargs):
+        seen.append(max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "openmp"))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(coacd, "run_coacd", recorded)
+    with threadpool_limits(limits=1, user_api="openmp"):  # what joblib gives a worker
+        parts = convex_decomposition(_mesh(), **SETTINGS)
+        monkeypatch.setattr(os, "cpu_count", lambda: 1)  # one thread, as a worker had before
+        single = convex_decomposition(_mesh(), **SETTINGS)
+    assert seen == [cores, 1]
+    np.testing.assert_array_equal(_vertices(parts), _vertices(single))
