@@ -373,9 +373,9 @@ class RefineParams:
     refine_base: bool = False
     release: bool = True
     release_w_pen: float = 300.0
-    release_w_touch: float = 1000.0
+    release_w_touch: float = 3000.0
     release_w_track: float = 30.0
-    release_tip_weight: float = 10.0
+    release_tip_weight: float = 30.0
     release_w_smooth: float = 1000.0
     release_w_smooth_joints: float = 1000.0
     release_iterations: int = 60

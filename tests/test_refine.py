@@ -272,7 +272,9 @@ def test_long_sequences_are_refined_in_cross_faded_windows(allegro):
     )  # fmt: skip
     assert windowed.shape == q.shape and e0.shape == e1.shape == (30,)
     assert np.all(_depth(allegro, windowed, pose, grid) < 0.0005)
-    assert np.abs(windowed - whole).max() < 0.005  # rad / m: the same solution, nearly
+    # rad / m: the same solution, nearly (L-BFGS stops after release_iterations; with the
+    # fingertips tracked 30x the two stops differ by up to 0.01 rad, by 0.005 at 10x)
+    assert np.abs(windowed - whole).max() < 0.015
     steps = np.abs(np.diff(windowed, axis=0)).max(axis=1)
     smooth = np.abs(np.diff(whole, axis=0)).max(axis=1)
     assert steps.max() < 1.5 * smooth.max(), (steps, smooth)  # no jump where windows meet
@@ -312,7 +314,7 @@ def test_release_reach_leaves_out_only_points_that_add_nothing(allegro, monkeypa
         allegro, q, inv, TorchSDF(grid), contact, RefineParams(release_reach_m=10.0)
     )
     assert np.abs(near - every).max() < 1e-6
-    assert np.all(_depth(allegro, near[:4], far[:4], grid) < 0.0005)
+    assert np.all(_depth(allegro, near[:4], far[:4], grid) < RefineParams().pen_margin_m)
     nothing = release_hand(allegro, q[4:], inv[4:], TorchSDF(grid), contact[4:], RefineParams())
     assert np.abs(nothing - q[4:]).max() < 1e-9
 
