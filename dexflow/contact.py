@@ -130,7 +130,7 @@ def finger_distances(
         (T, N, 3).
     """
     with torch.no_grad():
-        points, _ = hand.surface(torch.as_tensor(q, dtype=hand.dtype))
+        points, _ = hand.surface(torch.as_tensor(q, dtype=hand.dtype), normals=False)
     points = points.numpy()
     local = world_to_object(points, obj_pose)
     dist = sdf.query(local)

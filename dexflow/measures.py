@@ -84,7 +84,7 @@ def surface_distances(
         Distances (T, N) in metres (negative inside the object) and world points (T, N, 3).
     """
     with torch.no_grad():
-        points, _ = hand.surface(torch.as_tensor(q, dtype=hand.dtype))
+        points, _ = hand.surface(torch.as_tensor(q, dtype=hand.dtype), normals=False)
     points = points.cpu().numpy()
     return sdf.query(world_to_object(points, obj_pose)), points
 

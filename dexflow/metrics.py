@@ -159,7 +159,7 @@ class SelfCollision:
         if "points" not in cache:
             with torch.no_grad():
                 qt = torch.as_tensor(q, dtype=hand.dtype)
-                cache["points"] = hand.surface(qt)[0].numpy()
+                cache["points"] = hand.surface(qt, normals=False)[0].numpy()
                 cache["frames"] = hand.link_transforms(qt, self.links).numpy()
         points, frames = cache["points"], cache["frames"]
         link, kind, data, (center, radius) = self.shapes[s]

@@ -127,7 +127,7 @@ class TorchSDF:
     trilinear interpolant's exact derivative inside the grid, zero across the grid's boundary
     along a coordinate that sits on it (as ``torch.nn.functional.grid_sample`` with border
     padding), plus the unit vector away from the box outside it. Each cell's eight corner values
-    are stored together (float32, as the grid holds them), so a point reads one row.
+    are stored together (float32, as the grid holds them), so a point reads one column.
     """
 
     def __init__(self, grid: SignedDistanceGrid, dtype=torch.float64) -> None:
@@ -143,8 +143,8 @@ class TorchSDF:
             for i in (0, 1)
             for j in (0, 1)
             for k in (0, 1)
-        ]  # corner (i, j, k) of every cell is column 4i + 2j + k
-        self.corners = torch.stack(corners, -1).reshape(-1, 8).contiguous()
+        ]  # corner (i, j, k) of every cell is row 4i + 2j + k
+        self.corners = torch.stack([c.reshape(-1) for c in corners])  # (8, cells)
         self.cell_stride = torch.tensor([ny * nz, nz, 1])
 
     def __call__(self, points: torch.Tensor) -> torch.Tensor:
@@ -158,20 +158,23 @@ class TorchSDF:
         outside = torch.linalg.vector_norm(away, dim=-1)
         c = (clamped - self.origin) * self.scale  # continuous grid index
         first = torch.clamp(c.floor(), min=0).minimum(self.top)
-        f = c - first
-        v = self.corners[(first.long() * self.cell_stride).sum(-1)].to(flat.dtype)  # (N, 8)
-        fx, fy, fz = f[:, 0:1], f[:, 1:2], f[:, 2]
-        dx = v[:, 4:8] - v[:, 0:4]
-        along_x = v[:, 0:4] + dx * fx  # (N, 4): corners (y, z)
-        dy = along_x[:, 2:4] - along_x[:, 0:2]
-        along_y = along_x[:, 0:2] + dy * fy  # (N, 2): corners z
-        gz = along_y[:, 1] - along_y[:, 0]
-        value = along_y[:, 0] + gz * fz + outside
-        dx_y = dx[:, 0:2] + (dx[:, 2:4] - dx[:, 0:2]) * fy
-        gx = dx_y[:, 0] + (dx_y[:, 1] - dx_y[:, 0]) * fz
-        gy = dy[:, 0] + (dy[:, 1] - dy[:, 0]) * fz
+        f = (c - first).T.contiguous()  # (3, N)
+        cell = (first.long() * self.cell_stride).sum(-1)
+        # (8, N): each point's column of corners, gathered at once (index_select is ~5x faster
+        # than advanced indexing), so that every slice below is contiguous
+        v = torch.index_select(self.corners, 1, cell).to(flat.dtype)
+        fx, fy, fz = f[0], f[1], f[2]
+        dx = v[4:8] - v[0:4]
+        along_x = v[0:4] + dx * fx  # (4, N): corners (y, z)
+        dy = along_x[2:4] - along_x[0:2]
+        along_y = along_x[0:2] + dy * fy  # (2, N): corners z
+        gz = along_y[1] - along_y[0]
+        value = along_y[0] + gz * fz + outside
+        dx_y = dx[0:2] + (dx[2:4] - dx[0:2]) * fy
+        gx = dx_y[0] + (dx_y[1] - dx_y[0]) * fz
+        gy = dy[0] + (dy[1] - dy[0]) * fz
         within = (c > 0) & (c < self.top + 1)  # not on the boundary along that axis
-        grad = torch.stack([gx, gy, gz], -1) * self.scale * within
+        grad = torch.where(within, torch.stack([gx, gy, gz], -1) * self.scale, 0.0)
         grad = grad + away / torch.where(outside > 0, outside, 1.0)[:, None]
         return value, grad
 
@@ -380,7 +383,7 @@ def release_hand(
     def distances() -> torch.Tensor:
         """(T, N) signed distances of every surface point at the current configuration."""
         with torch.no_grad():
-            points, _ = hand.surface(configuration())
+            points, _ = hand.surface(configuration(), normals=False)
             return sdf(transform_points(world_to_obj, points))
 
     def within_reach(sd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -401,7 +404,8 @@ def release_hand(
         transforms = hand.frame_transforms(q)
         total = q.new_zeros(())
         if len(near) and len(index):
-            points, _ = hand.surface_points(q[near], index, transforms[near])
+            at = torch.index_select(transforms, 0, near)  # faster than [near], and its backward
+            points, _ = hand.surface_points(None, index, at, normals=False)
             sd = sdf(transform_points(world_to_obj[near], points))  # (T near, P near)
             total = (w_pen[near] * (torch.relu(margin - sd) ** 2).sum(-1)).sum()
             if touching[near].any():
@@ -527,7 +531,7 @@ def _refine_finger(
     base = q[frames].clone()
     theta0 = base[:, joints].clone()
     with torch.no_grad():  # the other fingers do not move while this one is optimised
-        fixed_others, _ = hand.surface_points(base, other_idx)
+        fixed_others, _ = hand.surface_points(base, other_idx, normals=False)
     local_index = {int(i): k for k, i in enumerate(finger_idx.tolist())}
     hand_rows = torch.as_tensor([local_index[int(i)] for i in hand_idx.tolist()], dtype=torch.long)
     spen_rows = torch.as_tensor([local_index[int(i)] for i in spen_idx.tolist()], dtype=torch.long)

@@ -302,9 +302,9 @@ def test_release_reach_leaves_out_only_points_that_add_nothing(allegro, monkeypa
     used: list[tuple[int, torch.Tensor]] = []
     original = type(allegro).surface_points
 
-    def spy(self, q, index, transforms=None):
-        used.append((len(q), torch.as_tensor(index)))
-        return original(self, q, index, transforms)
+    def spy(self, q, index, transforms=None, normals=True):
+        used.append((len(q if transforms is None else transforms), torch.as_tensor(index)))
+        return original(self, q, index, transforms, normals)
 
     monkeypatch.setattr(type(allegro), "surface_points", spy)
     near = release_hand(allegro, q, inv, TorchSDF(grid), contact, RefineParams())

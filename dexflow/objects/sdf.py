@@ -26,6 +26,7 @@ meshes.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -175,11 +176,14 @@ class SignedDistanceGrid:
         dims = np.array(self.values.shape)
         base = np.clip(np.floor(rel).astype(np.int64), 0, dims - 2)
         frac = rel - base
-        v = self.values
-        i, j, k = base[:, 0], base[:, 1], base[:, 2]
-        c = np.stack(
-            [v[i + di, j + dj, k + dk] for di in (0, 1) for dj in (0, 1) for dk in (0, 1)], axis=-1
-        ).astype(np.float64)
+        # the eight corners of each point's cell as offsets into the flat grid: one index
+        # computation and eight np.take (several times faster than 3-D fancy indexing)
+        _, ny, nz = self.values.shape
+        flat_values = self.values.reshape(-1)
+        first = base @ np.array([ny * nz, nz, 1], dtype=np.int64)
+        c = np.empty((len(first), 8))
+        for n, (di, dj, dk) in enumerate(itertools.product((0, 1), repeat=3)):
+            c[:, n] = np.take(flat_values, first + (di * ny * nz + dj * nz + dk))
         c = c.reshape(-1, 2, 2, 2)
         fx, fy, fz = frac[:, 0, None, None], frac[:, 1, None], frac[:, 2]
         cx = c[:, 0] * (1 - fx) + c[:, 1] * fx
