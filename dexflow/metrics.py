@@ -147,31 +147,35 @@ class SelfCollision:
         for link, *_ in self.shapes:
             adjacent = {link, parents.get(link)} | {k for k, p in parents.items() if p == link}
             self.masks.append(~np.isin(point_links, sorted(a for a in adjacent if a)))
+        zero = self._chunk(hand.zero().numpy())
         for s in range(len(self.shapes)):  # pairs overlapping at the zero pose
-            depth = self._depths(hand.zero().numpy(), s, self.masks[s])[0]
-            overlapping = sorted({point_links[i] for i in np.flatnonzero(depth > 1e-6)})
+            _, cols, depth = self._depths(zero, s, self.masks[s])
+            inside = np.flatnonzero(self.masks[s])[cols[depth > 1e-6]]
+            overlapping = sorted({point_links[i] for i in inside})
             self.masks[s] &= ~np.isin(point_links, overlapping)
 
-    def _depths(self, q: np.ndarray, s: int, mask: np.ndarray, cache: dict | None = None):
-        """(T, N) depth of the surface points in ``mask`` inside shape ``s`` (0 elsewhere)."""
-        hand = self.hand
-        cache = {} if cache is None else cache
-        if "points" not in cache:
-            with torch.no_grad():
-                qt = torch.as_tensor(q, dtype=hand.dtype)
-                cache["points"] = hand.surface(qt, normals=False)[0].numpy()
-                cache["frames"] = hand.link_transforms(qt, self.links).numpy()
-        points, frames = cache["points"], cache["frames"]
+    def _chunk(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World surface points (T, N, 3) and the shapes' link transforms (T, L, 4, 4)."""
+        with torch.no_grad():
+            qt = torch.as_tensor(q, dtype=self.hand.dtype)
+            points = self.hand.surface(qt, normals=False)[0].numpy()
+            return points, self.hand.link_transforms(qt, self.links).numpy()
+
+    def _depths(self, chunk: tuple[np.ndarray, np.ndarray], s: int, mask: np.ndarray):
+        """The surface points in ``mask`` near shape ``s`` (within its bounding sphere) in
+        each frame of ``chunk`` (:meth:`_chunk`): their frame rows (K,), their columns among
+        the points of ``mask`` (K,) and their depth inside the shape (K,), 0 where outside.
+        Sparse, so that a frame's deepest point costs only the points near each shape."""
+        points, frames = chunk
         link, kind, data, (center, radius) = self.shapes[s]
         t = frames[:, self.links.index(link)]
         rot, pos = t[:, :3, :3], t[:, :3, 3]
         candidates = points[:, mask]  # (T, M, 3)
         center_world = rot @ center + pos  # (T, 3)
         near = np.sum((candidates - center_world[:, None]) ** 2, axis=-1) < radius**2  # cull
-        out = np.zeros(points.shape[:2])
-        if not near.any():
-            return out
         rows, cols = np.nonzero(near)
+        if len(rows) == 0:
+            return rows, cols, np.zeros(0)
         # only the points near the shape go to its frame: x = Rᵀ (p - o)
         x = ((candidates[rows, cols] - pos[rows])[:, None, :] @ rot[rows])[:, 0]  # (K, 3)
         if kind == "capsule":
@@ -181,20 +185,19 @@ class SelfCollision:
             depth = r - np.linalg.norm(x - (a + u[:, None] * ab), axis=-1)
         else:
             depth = -(x @ data[:, :3].T + data[:, 3]).max(axis=-1)
-        inside = np.zeros(near.shape)
-        inside[near] = np.clip(depth, 0.0, None)
-        out[:, mask] = inside
-        return out
+        return rows, cols, np.clip(depth, 0.0, None)
 
     def __call__(self, q: np.ndarray) -> np.ndarray:
         """(T,) self-penetration depth (m) of configurations ``q (T, dof)``."""
         q = np.asarray(q)
         out = np.zeros(len(q))
         for frames in frame_chunks(len(q)):  # memory bounded by a chunk, not the sequence
-            cache: dict = {}
+            chunk = self._chunk(q[frames])
+            deepest = np.zeros(len(chunk[0]))
             for s, mask in enumerate(self.masks):
-                depth = self._depths(q[frames], s, mask, cache).max(axis=1)
-                out[frames] = np.maximum(out[frames], depth)
+                rows, _, depth = self._depths(chunk, s, mask)
+                np.maximum.at(deepest, rows, depth)
+            out[frames] = deepest
         return out
 
 
