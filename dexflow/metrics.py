@@ -147,9 +147,9 @@ class SelfCollision:
         for link, *_ in self.shapes:
             adjacent = {link, parents.get(link)} | {k for k, p in parents.items() if p == link}
             self.masks.append(~np.isin(point_links, sorted(a for a in adjacent if a)))
-        zero = self._chunk(hand.zero().numpy())
+        zero_chunk = self._chunk(hand.zero().numpy())
         for s in range(len(self.shapes)):  # pairs overlapping at the zero pose
-            _, cols, depth = self._depths(zero, s, self.masks[s])
+            _, cols, depth = self._depths(zero_chunk, s, self.masks[s])
             inside = np.flatnonzero(self.masks[s])[cols[depth > 1e-6]]
             overlapping = sorted({point_links[i] for i in inside})
             self.masks[s] &= ~np.isin(point_links, overlapping)

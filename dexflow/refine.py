@@ -126,8 +126,9 @@ class TorchSDF:
     per-finger step query it on every evaluation, for tens of thousands of points): the
     trilinear interpolant's exact derivative inside the grid, zero across the grid's boundary
     along a coordinate that sits on it (as ``torch.nn.functional.grid_sample`` with border
-    padding), plus the unit vector away from the box outside it. Each cell's eight corner values
-    are stored together (float32, as the grid holds them), so a point reads one column.
+    padding), plus the unit vector away from the box outside it. The cells' corner values are
+    stored as eight rows (8, cells) (float32, as the grid holds them), so a point's corners are
+    one column, gathered with ``index_select``.
     """
 
     def __init__(self, grid: SignedDistanceGrid, dtype=torch.float64) -> None:

@@ -284,8 +284,9 @@ class RobotHand:
         normals: bool = True,
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """World points (B, P, 3) and normals of the surface points ``index (P,)`` only
-        (``transforms``: the frames' transforms of ``q`` where already computed; ``normals=False``:
-        the points alone, normals ``None``, half the work)."""
+        (``transforms``: the frames' transforms of ``q`` where already computed, ``q`` is then
+        not read and may be None; ``normals=False``: the points alone, normals ``None``, the
+        normals' transform skipped)."""
         index = torch.as_tensor(index, dtype=torch.long, device=self.device)
         return _transform_points(
             self.frame_transforms(q) if transforms is None else transforms,
