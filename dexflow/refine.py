@@ -122,9 +122,10 @@ class TorchSDF:
 
     The value is :meth:`SignedDistanceGrid.query`'s: trilinear inside the grid, outside it the
     value at the nearest point of the grid box plus the distance to the box. The gradient is
-    computed with the value, in one pass and without an autograd graph (the release and the
-    per-finger step query it on every evaluation, for tens of thousands of points): the
-    trilinear interpolant's exact derivative inside the grid, zero across the grid's boundary
+    computed without an autograd graph, in the backward pass and only at the points whose value
+    the loss uses (the release and the per-finger step query it on every evaluation, for tens of
+    thousands of points, most of which add nothing): the trilinear interpolant's exact
+    derivative inside the grid, zero across the grid's boundary
     along a coordinate that sits on it (as ``torch.nn.functional.grid_sample`` with border
     padding), plus the unit vector away from the box outside it. The cells' corner values are
     stored as eight rows (8, cells) (float32, as the grid holds them), so a point's corners are
@@ -152,8 +153,19 @@ class TorchSDF:
         """Signed distance (...,) at points (..., 3)."""
         return _GridDistance.apply(points.reshape(-1, 3), self).reshape(points.shape[:-1])
 
+    def value(self, flat: torch.Tensor) -> torch.Tensor:
+        """Signed distance (N,) at points ``flat (N, 3)``."""
+        return self._interpolate(flat, gradient=False)[0]
+
     def value_and_gradient(self, flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Signed distance (N,) and its gradient (N, 3) at points ``flat (N, 3)``."""
+        value, grad = self._interpolate(flat, gradient=True)
+        assert grad is not None
+        return value, grad
+
+    def _interpolate(
+        self, flat: torch.Tensor, gradient: bool
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         clamped = torch.maximum(torch.minimum(flat, self.upper), self.origin)
         away = flat - clamped
         outside = torch.linalg.vector_norm(away, dim=-1)
@@ -171,6 +183,8 @@ class TorchSDF:
         along_y = along_x[0:2] + dy * fy  # (2, N): corners z
         gz = along_y[1] - along_y[0]
         value = along_y[0] + gz * fz + outside
+        if not gradient:
+            return value, None
         dx_y = dx[0:2] + (dx[2:4] - dx[0:2]) * fy
         gx = dx_y[0] + (dx_y[1] - dx_y[0]) * fz
         gy = dy[0] + (dy[1] - dy[0]) * fz
@@ -181,18 +195,30 @@ class TorchSDF:
 
 
 class _GridDistance(torch.autograd.Function):
-    """:meth:`TorchSDF.value_and_gradient` as an autograd function of the points."""
+    """:meth:`TorchSDF.value` as an autograd function of the points.
+
+    The forward pass computes the values alone; the backward pass computes the gradient only
+    at the points whose value the loss uses (a nonzero upstream gradient: the few points inside
+    or within the margin, each finger's nearest point), from the same arithmetic as
+    :meth:`TorchSDF.value_and_gradient`. The release's penalties are zero at most points, so
+    this skips most of the gradient's work; the points left out contribute exactly 0.
+    """
 
     @staticmethod
     def forward(ctx, flat: torch.Tensor, sdf: TorchSDF) -> torch.Tensor:
-        value, grad = sdf.value_and_gradient(flat)
-        ctx.save_for_backward(grad)
-        return value
+        ctx.save_for_backward(flat)
+        ctx.sdf = sdf
+        return sdf.value(flat)
 
     @staticmethod
     def backward(ctx, upstream: torch.Tensor):
-        (grad,) = ctx.saved_tensors
-        return upstream[:, None] * grad, None
+        (flat,) = ctx.saved_tensors
+        active = torch.nonzero(upstream).flatten()
+        out = torch.zeros_like(flat)
+        if len(active):
+            _, grad = ctx.sdf.value_and_gradient(torch.index_select(flat, 0, active))
+            out.index_copy_(0, active, upstream[active, None] * grad)
+        return out, None
 
 
 def hand_object_measures(
