@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from dexflow.io.layout import Layout, StageDir
+from dexflow.tip_motion import NEAR_M
 
 __all__ = [
     "bench_fk",
@@ -19,6 +20,8 @@ __all__ = [
     "bench_refine",
     "bench_retarget",
     "bench_simulate",
+    "grasp_breakdown",
+    "refine_motion",
 ]
 
 
@@ -765,6 +768,9 @@ def _subset_root(root: Path, count: int, folder: Path) -> Path:
         return root
     chosen = [files[int(i)] for i in np.linspace(0, len(files) - 1, count).round()]
     subset.sequences_dir.mkdir(parents=True, exist_ok=True)
+    for old in [*subset.sequences_dir.iterdir(), *folder.iterdir()]:
+        if old.is_symlink():  # a previous run's links (another --subset): made afresh
+            old.unlink()
     for path in chosen:
         subset.sequence(path).symlink_to(path.resolve())
     for entry in root.iterdir():
@@ -790,9 +796,14 @@ def bench_real(
     are tabulated per method: the numbers of the README's "Real data" section. ``sequences > 0``
     takes that many evenly spaced sequences.
 
+    After the metrics' table the report says why targets are missed: per method how the grasp
+    test's frames fail (:func:`grasp_breakdown`) and where refinement moved the fingertips
+    (:func:`refine_motion`).
+
     Returns:
         Per hand: ``metrics`` (the metrics stage's aggregates), ``simulate`` (per trajectory
-        label, the simulate stage's summary), ``seconds`` per stage, ``sequences``, ``frames``
+        label, the simulate stage's summary), ``grasps`` (per label, :func:`grasp_breakdown`),
+        ``motion`` (:func:`refine_motion`), ``seconds`` per stage, ``sequences``, ``frames``
         and ``retarget_s_per_sequence`` (CPU seconds of retarget@dexflow per sequence:
         wall-clock time x workers / sequences).
     """
@@ -816,7 +827,8 @@ def bench_real(
         params = load_params(compose_params([*fixed, *(overrides or [])], folder / "params.yaml"))
         params = dataclasses.replace(params, run=dataclasses.replace(params.run, n_jobs=workers))
         seconds, summary, frames, simulated = {}, {}, 0, {}
-        for name, fn in _pipeline_stages(params, Layout.of(data_root, root=folder)):
+        layout = Layout.of(data_root, root=folder)
+        for name, fn in _pipeline_stages(params, layout):
             if name == "demo":
                 continue
             start = time.perf_counter()
@@ -831,6 +843,8 @@ def bench_real(
         results[hand] = {
             "metrics": {k: v for k, v in summary.items() if k != "sequences"},
             "simulate": simulated,
+            "motion": refine_motion(params, layout),
+            "grasps": {m: grasp_breakdown(layout.simulate(m)) for m in simulated},
             "seconds": seconds,
             "sequences": count,
             "frames": frames,
@@ -841,6 +855,122 @@ def bench_real(
     text = _real_table(results, source, sequences, workers, overrides or [])
     _publish(text, out)
     return results
+
+
+def refine_motion(params, layout: Layout) -> dict[str, float]:
+    """:func:`dexflow.tip_motion.summarize_motion` of retargeted -> refined over every
+    sequence that both stages wrote (stage outputs in ``layout``)."""
+    from dexflow.hands.files import staged_spec
+    from dexflow.hands.robot import cached_hand
+    from dexflow.io.artifacts import ObjectAssets, read_trajectory
+    from dexflow.io.sequence import load_sequence
+    from dexflow.tip_motion import fingertip_motion, summarize_motion
+
+    hand = cached_hand(staged_spec(params.hand, layout.hand_files.root), None)
+    aligned, parts = layout.scale_align, []
+    for path in layout.retarget("dexflow").sequence_files():
+        refined = layout.refine.sequence(path)
+        if not refined.is_file():
+            continue  # failed in refine: reported there
+        seq = load_sequence(aligned.sequence(path), aligned.root)
+        retargeted = read_trajectory(path, hand.joint_names, frames=seq.num_frames)
+        parts.append(fingertip_motion(
+            hand, retargeted.q, read_trajectory(refined, hand.joint_names, seq.num_frames).q,
+            retargeted["keypoints_human"], retargeted["observed"].astype(bool), seq.obj_pose,
+            ObjectAssets(aligned.object_of(seq.obj_mesh)).sdf(),
+        ))  # fmt: skip
+    return summarize_motion(parts)
+
+
+def grasp_breakdown(out: StageDir) -> dict[str, float]:
+    """Which frames a method's grasp test counts, and how the tested ones fail.
+
+    From stage simulate's rows in ``out`` (its first engine; robust DexGraspBench criterion):
+    ``tested`` and ``skipped`` frames (skipped: over the penetration tolerance, not tested),
+    ``held`` (tested frames that hold), ``opposed`` (tested frames where the thumb and another
+    finger touch the object at the start; NaN without a thumb) and ``opposed_held``, and over
+    the tested frames that fail, the median ``displacement_mm`` and ``rotation_deg`` under the
+    first push (the test stops at the first failing direction).
+    """
+    import json
+
+    from dexflow.io.artifacts import read_simulation
+
+    summary = json.loads(out.summary.read_text())
+    counts = dict.fromkeys(("tested", "held", "opposed", "opposed_held"), 0)
+    displacement, rotation, thumb = [], [], True
+    for path in out.sequence_files():
+        result = read_simulation(path)
+        rows, engine = result.rows, result.engines[0]
+        held = rows[f"{engine}.bench"].astype(bool)
+        touching = rows[f"{engine}.touching"].astype(bool)
+        thumb = thumb and "thumb" in result.fingers
+        opposed = np.zeros(len(held), dtype=bool)
+        if "thumb" in result.fingers:
+            opposed = touching[:, result.fingers.index("thumb")] & (touching.sum(1) >= 2)
+        counts["tested"] += len(held)
+        counts["held"] += int(held.sum())
+        counts["opposed"] += int(opposed.sum())
+        counts["opposed_held"] += int((opposed & held).sum())
+        displacement += list(rows[f"{engine}.displacement_m"][~held, 0])
+        rotation += list(rows[f"{engine}.rotation_deg"][~held, 0])
+    failed = np.array(displacement, dtype=float)
+    return {
+        **counts,
+        "skipped": int(summary.get("frames_skipped", 0)),
+        "thumb": thumb,
+        "displacement_mm": 1000 * float(np.nanmedian(failed)) if len(failed) else float("nan"),
+        "rotation_deg": float(np.nanmedian(rotation)) if rotation else float("nan"),
+    }
+
+
+def _grasp_lines(results: dict[str, dict]) -> list[str]:
+    """The table of :func:`grasp_breakdown` per hand and method."""
+    rows = [(h, m, g) for h, r in results.items() for m, g in r.get("grasps", {}).items()]
+    if not rows:
+        return []
+    lines = [
+        "Which frames the grasp test counts and how they fail (robust DexGraspBench criterion, "
+        "first engine; *opposed*: the thumb and another finger touch the object at the start):",
+        "",
+        "| hand | method | frames tested | skipped (over the penetration tolerance) | held "
+        "| opposed | opposed and held | failed: median displacement mm / rotation ° "
+        "under the first push |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for hand, method, g in rows:
+        opposed = f"{g['opposed']} | {g['opposed_held']}" if g["thumb"] else "— | —"
+        lines.append(
+            f"| {hand} | {method} | {g['tested']} | {g['skipped']} | {g['held']} | {opposed} "
+            f"| {g['displacement_mm']:.0f} / {g['rotation_deg']:.0f} |"
+        )
+    return lines
+
+
+def _motion_lines(results: dict[str, dict]) -> list[str]:
+    """The table of where refinement moved the fingertips (:mod:`dexflow.tip_motion`)."""
+    rows = [(hand, r["motion"]) for hand, r in results.items() if r.get("motion", {}).get("tips")]
+    if not rows:
+        return []
+    lines = [
+        "Where refinement moves the fingertips (retargeted -> refined, observed frames; "
+        f"*near*: the human fingertip within {1000 * NEAR_M:.0f} mm of the object; "
+        "definitions in `dexflow/tip_motion.py`):",
+        "",
+        "| hand | human tips inside the object mm | near % | near: fingertip error mm "
+        "| near: moved along the normal (outward) / across it mm | far: fingertip error mm "
+        "| far: moved mm | palm moved mm |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for hand, m in rows:
+        lines.append(
+            f"| {hand} | {m['tip_depth_mm']:.2f} | {100 * m['near_share']:.0f} "
+            f"| {m['near_error_from_mm']:.1f} → {m['near_error_to_mm']:.1f} "
+            f"| {m['normal_mm']:.1f} ({m['outward_mm']:+.1f}) / {m['tangential_mm']:.1f} "
+            f"| {m['far_error_from_mm']:.1f} → {m['far_error_to_mm']:.1f} "
+            f"| {m['far_moved_mm']:.1f} | {m['palm_mm']:.1f} |"
+        )
+    return lines
 
 
 def _real_table(
@@ -867,6 +997,8 @@ def _real_table(
                 cells.append("—" if value is None or not np.isfinite(value) else fmt.format(value))
             lines.append(f"| {hand} | {label} | " + " | ".join(cells) + " |")
     lines += ["", *_real_engines(results), ""]
+    for table in (_grasp_lines(results), _motion_lines(results)):
+        lines += [*table, ""] if table else []
     for hand, r in results.items():
         total = sum(r["seconds"].values())
         lines.append(

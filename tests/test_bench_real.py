@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import math
 
-from dexflow.bench import _real_table, _subset_root
+import numpy as np
+
+from dexflow.bench import _real_table, _subset_root, grasp_breakdown
+from dexflow.io.artifacts import ENGINE_KEYS, SimulationResult, write_simulation
+from dexflow.io.layout import StageDir
 
 
 def test_subset_links_evenly_spaced_sequences_and_the_rest_of_the_root(tmp_path):
@@ -22,6 +26,8 @@ def test_subset_links_evenly_spaced_sequences_and_the_rest_of_the_root(tmp_path)
         "s09.npz",
     ]
     assert (sub / "meshes").resolve() == (root / "meshes").resolve()
+    again = _subset_root(root, 2, tmp_path / "sub")  # a rerun in the same work folder
+    assert sorted(p.name for p in (again / "sequences").iterdir()) == ["s00.npz", "s09.npz"]
 
 
 def test_table_has_one_row_per_hand_and_method_and_marks_missing_values():
@@ -81,3 +87,60 @@ def test_table_shows_each_engine_and_their_agreement_and_the_overrides():
     assert "| shadow | refine | mujoco | 25.0 | 25.0 | 2.0 |" in text
     assert "| shadow | refine | pybullet | 50.0 | 37.5 | 5.0 |" in text
     assert "| shadow | refine | 40 | 4 | 30 | 6 |" in text
+
+
+def test_table_says_where_refinement_moved_the_fingertips():
+    """With the motion summary (dexflow.tip_motion) a row per hand; without it no table."""
+    motion = {"tips": 40, "tip_depth_mm": 1.44, "near_share": 0.51, "near_error_from_mm": 4.46,
+              "near_error_to_mm": 13.54, "normal_mm": 7.09, "outward_mm": 4.13,
+              "tangential_mm": 8.36, "far_error_from_mm": 6.25, "far_error_to_mm": 7.49,
+              "far_moved_mm": 2.77, "palm_mm": 10.29}  # fmt: skip
+    result = {"metrics": {}, "seconds": {"retarget@dexflow": 1.0}, "sequences": 1, "frames": 10,
+              "retarget_s_per_sequence": 1.0}  # fmt: skip
+    assert "Where refinement moves" not in _real_table({"shadow": result}, "data/real", 0, 2)
+    text = _real_table({"shadow": {**result, "motion": motion}}, "data/real", 0, 2)
+    row = next(line for line in text.splitlines() if line.startswith("| shadow | 1.44"))
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    assert cells == ["shadow", "1.44", "51", "4.5 → 13.5", "7.1 (+4.1) / 8.4", "6.2 → 7.5",
+                     "2.8", "10.3"]  # fmt: skip
+
+
+def _simulated(out: StageDir, name: str, touching, bench, displacement_m) -> None:
+    """A simulate output of len(bench) tested frames (engine mujoco; thumb, index, middle)."""
+    n = len(bench)
+    rows = {"frame": np.arange(n), "penetration_m": np.zeros(n)}
+    rows |= {f"mujoco.{k}": np.zeros(n) for k in ENGINE_KEYS}
+    for key in ("held", "rotation_deg", "tested"):
+        rows[f"mujoco.{key}"] = np.zeros((n, 6))
+    rows["mujoco.touching"] = np.array(touching, dtype=bool).reshape(n, 3)
+    rows["mujoco.bench"] = np.array(bench, dtype=bool)
+    rows["mujoco.displacement_m"] = np.tile(np.array(displacement_m)[:, None], (1, 6))
+    out.sequences_dir.mkdir(parents=True, exist_ok=True)
+    write_simulation(
+        out.sequence(name), SimulationResult(rows, ["thumb", "index", "middle"], ["mujoco"])
+    )
+
+
+def test_grasp_breakdown_counts_opposed_and_held_frames(tmp_path):
+    """Tested, skipped (from the summary), held, opposed (thumb + another finger touching) and
+    the failed frames' median displacement under the first push, pooled over sequences."""
+    out = StageDir(tmp_path / "simulate")
+    _simulated(out, "a", [[1, 1, 0], [1, 0, 0], [0, 1, 1]], [True, False, False],
+               [0.001, 0.2, 0.1])  # fmt: skip
+    _simulated(out, "b", [[1, 0, 1]], [False], [0.05])
+    out.summary.write_text('{"frames_skipped": 4}')
+    g = grasp_breakdown(out)
+    assert (g["tested"], g["skipped"], g["held"], g["opposed"], g["opposed_held"]) == (
+        4,
+        4,
+        1,
+        2,
+        1,
+    )
+    assert g["displacement_mm"] == 100.0 and g["thumb"]
+    text = _real_table(
+        {"shadow": {"metrics": {}, "seconds": {"retarget@dexflow": 1.0}, "sequences": 2,
+                    "frames": 10, "retarget_s_per_sequence": 1.0, "grasps": {"refine": g}}},
+        "data/real", 0, 2,
+    )  # fmt: skip
+    assert "| shadow | refine | 4 | 4 | 1 | 2 | 1 | 100 / 0 |" in text
