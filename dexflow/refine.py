@@ -32,13 +32,19 @@ freedom (floating base and all joints) of every frame is optimised jointly:
           + w_touch Σ_t Σ_{f in contact} max(0, min_{p∈f} sd(p))²   (contact fingers keep touching)
           + w_track Σ_t Σ_k w_k ||v^k(q_t) - v^k(q_t^0)||²    (keypoints stay where they were)
           + w_smooth Σ_t ||Δ̈v_t||² + w_smooth_joints Σ_t ||Δ̈θ_t||²   (no added jitter)
+          + w_joints Σ_t ||Δθ_t||²                                  (no drift unseen above)
 
 with ``Δv = v(q) - v(q^0)`` the change of the keypoints, ``Δθ`` that of the hand joints and
 ``Δ̈`` second differences over frames; ``w_k`` is ``release_tip_weight`` for the fingertip
 keypoints and 1 for the others, so that the palm and the proximal links give way before the
-fingertips (what the motion is judged by) do. The hand backs out of the object as a whole, the
-fingers flex back onto it, and the change varies smoothly over time. It is solved by L-BFGS
-over all frames at once (``release_iterations``; over each window of a long sequence). A
+fingertips (what the motion is judged by) do. The last term (``release_w_joints``, small) makes
+the optimum unique where joints can move without moving a keypoint (a thumb with more joints
+than keypoints): a change growing linearly over the frames has no second difference, so without
+it such a joint drifted by up to 0.5 rad over a sequence. The hand backs out of the object as a
+whole, the fingers flex back onto it, and the change varies smoothly over time. It is solved by L-BFGS
+over all frames at once (``release_iterations``; over each window of a long sequence), in
+coordinates where the tracking and smoothness terms have unit curvature along time
+(:func:`temporal_preconditioner`: the same energy and optimum, reached in fewer iterations). A
 quadratic penalty trades depth against the other terms, so the deepest frames of a real capture
 (fingers 2 cm inside the scan) would keep part of theirs: the last release is solved again
 (``release_rounds``) with ten times the ``w_pen`` of every frame still deeper than
@@ -76,6 +82,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import scipy.linalg
 import torch
 
 from dexflow.errors import ArtifactError
@@ -394,12 +401,14 @@ def release_hand(
     lo, hi = hand.lower[free], hand.upper[free]
     tips = [m in FINGERTIPS for m in hand.mano_indices]
     track_w = torch.where(torch.as_tensor(tips), params.release_tip_weight, 1.0).to(hand.dtype)
-    delta = torch.zeros(len(q0), len(free), dtype=hand.dtype, requires_grad=True)
+    bands = _stacked_bands(temporal_preconditioner(hand, q0, track_w, params))
+    z = torch.zeros(len(free), len(q0), dtype=hand.dtype, requires_grad=True)  # delta = L⁻ᵀ z
     margin = params.pen_margin_m
     w_pen = torch.full((len(q0),), params.release_w_pen, dtype=hand.dtype)
 
     def configuration() -> torch.Tensor:
         q = q0.clone()
+        delta = _BandedTransposedSolve.apply(z, *bands).T
         q[:, free] = torch.maximum(torch.minimum(q0[:, free] + delta, hi), lo)
         return hand.apply_couplings(q)
 
@@ -442,16 +451,17 @@ def release_hand(
                 total = total + params.release_w_touch * (gap**2).sum()
         change = hand.keypoints(q, transforms) - kp_ref
         total = total + params.release_w_track * ((change**2).sum(-1) * track_w).sum()
+        joints = q[:, 6:] - ref[:, 6:]
+        total = total + params.release_w_joints * (joints**2).sum()
         if len(q) > 2:
             acc = change[2:] - 2 * change[1:-1] + change[:-2]
             total = total + params.release_w_smooth * (acc**2).sum()
-            joints = q[:, 6:] - ref[:, 6:]
             acc_j = joints[2:] - 2 * joints[1:-1] + joints[:-2]
             total = total + params.release_w_smooth_joints * (acc_j**2).sum()
         return total
 
     def closure() -> torch.Tensor:
-        delta.grad = None
+        z.grad = None
         e = energy()
         e.backward()
         return e
@@ -459,7 +469,7 @@ def release_hand(
     solves = params.release_rounds if rounds is None else rounds
     for solve in range(solves):
         torch.optim.LBFGS(
-            [delta], max_iter=params.release_iterations, line_search_fn="strong_wolfe",
+            [z], max_iter=params.release_iterations, line_search_fn="strong_wolfe",
             tolerance_grad=1e-10, tolerance_change=1e-14, history_size=20,
         ).step(closure)  # fmt: skip
         if solve == solves - 1:
@@ -468,10 +478,107 @@ def release_hand(
         deep = torch.relu(-sd.amin(-1)) > params.release_depth_m
         if not deep.any():
             break
+        # and the frames up to two away: a second difference ties a frame to them, and raising
+        # its weight alone pushed them in (one Shadow frame went from 4 to 9 mm that way)
+        deep = torch.nn.functional.max_pool1d(deep[None, None].to(sd.dtype), 5, 1, 2)[0, 0] > 0
         w_pen = torch.where(deep, w_pen * 10, w_pen)
         near, index = within_reach(sd)  # from the same distances: one surface pass a round
     with torch.no_grad():
         return hand.clamp(configuration()).numpy()
+
+
+def temporal_preconditioner(
+    hand: RobotHand, q0: torch.Tensor, track_w: torch.Tensor, params: RefineParams
+) -> np.ndarray:
+    """Banded Cholesky factors of the release energy's curvature along time, per free joint.
+
+    Without it L-BFGS converges slowly: the smoothness terms stiffen fast changes over frames
+    (``w_smooth · 16`` for an alternating one) thousands of times more than the tracking term
+    stiffens slow ones (a finger joint moves its tip ~3 cm per radian), and those slow joint
+    changes are what the fingertip error is made of. For every free joint ``j`` the curvature
+    of the tracking and smoothness terms, with the other joints and the object left out, is
+
+        M_j = diag_t(w_track Σ_k w_k |∂v^k_t/∂q_j|² + w_joints c_j) + b_j D2ᵀD2,
+        b_j = w_smooth · mean_t Σ_k |∂v^k_t/∂q_j|² + w_smooth_joints c_j,
+        c_j = Σ_i (∂θ_i/∂q_j)²
+
+    (``D2`` the second difference over frames, ``θ`` the hand joints with the tendon followers,
+    ``w_joints`` = ``release_w_joints``, keypoint derivatives by finite differences at ``q0``):
+    exact for a trajectory that holds one pose, pentadiagonal; with ``M_j = L_j L_jᵀ`` the
+    release optimises ``z`` for ``Δq_j = L_j⁻ᵀ z_j``, along which that part of the energy has
+    unit curvature. It is the same energy in other coordinates: the optimum does not change,
+    L-BFGS reaches it sooner.
+    Measured on 8 real captures (Shadow, 60 iterations a solve): refine's fingertip error
+    10.5 → 9.9 mm, PD mean 1.39 → 1.15 mm, CD 1.38 → 1.20 mm; 200 iterations give 9.8 mm.
+
+    Returns:
+        (F, 3, T) lower banded factors (``scipy.linalg.cholesky_banded`` form), F free joints.
+    """
+    free, n = hand.free_joints, len(q0)
+    step = 1e-5  # rad or m: slopes to 1e-4 relative (FK in float64)
+    with torch.no_grad():
+        # every free joint moved by `step`, in a block of frames of its own
+        moved = q0.repeat(len(free), 1)
+        blocks = torch.arange(len(free)).repeat_interleave(n)
+        moved[torch.arange(len(moved)), torch.as_tensor(free)[blocks]] += step
+        base = hand.keypoints(q0)
+        kp = hand.keypoints(hand.apply_couplings(moved)).view(len(free), n, -1, 3)
+        slope = (kp - base) / step
+        sq = (slope**2).sum(-1)  # (F, T, K)
+    ties, _ = hand.coupling_affine()  # ∂q/∂(free joints): a leader moves its followers too
+    joint = (ties[6:] ** 2).sum(0)  # Σ_i (∂θ_i/∂q_j)²: 0 for the floating base
+    track = (params.release_w_track * (sq * track_w).sum(-1)).numpy()  # (F, T)
+    track += params.release_w_joints * joint[:, None]
+    smooth = params.release_w_smooth * sq.sum(-1).mean(-1).numpy()
+    smooth += params.release_w_smooth_joints * joint
+    d2 = _second_difference_gram(n)
+    bands = smooth[:, None, None] * d2[None]
+    bands[:, 0] += track
+    bands[:, 0] += 1e-6 * bands[:, 0].mean(-1, keepdims=True) + 1e-12  # positive definite
+    factors = np.stack([scipy.linalg.cholesky_banded(b, lower=True) for b in bands])
+    for d in (1, 2):  # outside the matrix: zero, so that the factors stack into one system
+        factors[:, d, n - d :] = 0
+    return factors
+
+
+def _second_difference_gram(n: int) -> np.ndarray:
+    """``D2ᵀD2`` for ``D2`` the (n-2, n) second difference, in lower banded form (3, n)."""
+    gram, rows = np.zeros((3, n)), max(n - 2, 0)
+    stencil = (1.0, -2.0, 1.0)  # row r of D2 at frames r, r+1, r+2
+    for i in range(3):
+        for j in range(i + 1):  # entry (r + i, r + j) of the gram, of every row r at once
+            gram[i - j, j : j + rows] += stencil[i] * stencil[j]
+    return gram
+
+
+class _BandedTransposedSolve(torch.autograd.Function):
+    """``x_j = L_j⁻ᵀ z_j`` for every row of ``z (F, T)``, with the factors ``L_j`` of
+    :func:`temporal_preconditioner` stacked by :func:`_stacked_bands`; the gradient is
+    ``L_j⁻¹ g_j``. All rows are one block-diagonal banded system: one LAPACK call each way."""
+
+    @staticmethod
+    def forward(ctx, z: torch.Tensor, lower: np.ndarray, upper: np.ndarray) -> torch.Tensor:
+        ctx.lower = lower
+        x = scipy.linalg.solve_banded((0, 2), upper, z.detach().numpy().ravel())
+        return torch.as_tensor(x.reshape(z.shape), dtype=z.dtype)
+
+    @staticmethod
+    def backward(ctx, upstream: torch.Tensor):
+        g = scipy.linalg.solve_banded((2, 0), ctx.lower, upstream.numpy().ravel())
+        return torch.as_tensor(g.reshape(upstream.shape), dtype=upstream.dtype), None, None
+
+
+def _stacked_bands(lower: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The factors ``L_j`` (F, 3, T) in lower banded form as one block-diagonal system: ``L``
+    in lower banded form and ``Lᵀ`` in upper banded form (``u = 2``), each (3, F·T)."""
+    n = lower.shape[-1]
+    upper = np.zeros_like(lower)
+    for d in range(3):  # Lᵀ[j - d, j] = L[j, j - d] = lower[d, j - d]; nothing across blocks
+        upper[:, 2 - d, d:] = lower[:, d, : n - d]
+    return (
+        np.ascontiguousarray(lower.transpose(1, 0, 2)).reshape(3, -1),
+        np.ascontiguousarray(upper.transpose(1, 0, 2)).reshape(3, -1),
+    )
 
 
 def energy_terms(

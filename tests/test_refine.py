@@ -5,9 +5,11 @@ from __future__ import annotations
 import itertools
 import json
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import pytest
+import scipy.linalg
 import torch
 import trimesh
 from scipy.spatial import cKDTree
@@ -20,10 +22,14 @@ from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import RefineParams
 from dexflow.refine import (
     TorchSDF,
+    _BandedTransposedSolve,
+    _second_difference_gram,
+    _stacked_bands,
     energy_terms,
     grip_trajectory,
     refine_trajectory,
     release_hand,
+    temporal_preconditioner,
 )
 
 FRAMES = 3
@@ -207,7 +213,8 @@ def test_release_frees_a_palm_inside_the_object(allegro):
         moved = torch.linalg.norm(
             allegro.keypoints(torch.as_tensor(q1)) - allegro.keypoints(torch.as_tensor(q)), dim=-1
         ).numpy()
-    assert 0.003 < moved.mean() < 0.007 and moved.max() < 0.011, moved  # about the depth
+    # about the depth at most (tilting the palm out moves the keypoints near the wrist less)
+    assert 0.002 < moved.mean() < 0.007 and moved.max() < 0.011, moved
     assert np.ptp(moved.mean(axis=1)) < 0.001  # the same change in every frame: no jitter
     lo, hi = allegro.lower.numpy(), allegro.upper.numpy()
     assert np.all(q1 >= lo - 1e-12) and np.all(q1 <= hi + 1e-12)
@@ -257,6 +264,84 @@ def test_release_moves_the_palm_before_the_fingertips(allegro):
     assert tips_equal > 2 * tips
 
 
+def _banded_to_dense(lower: np.ndarray) -> np.ndarray:
+    """(..., 3, T) lower banded form to the (..., T, T) lower triangular matrix."""
+    n = lower.shape[-1]
+    dense = np.zeros((*lower.shape[:-2], n, n))
+    for d in range(3):
+        rows = np.arange(n - d)
+        dense[..., rows + d, rows] = lower[..., d, : n - d]
+    return dense
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 9])
+def test_second_difference_gram_and_the_banded_solve(n):
+    """The banded D2ᵀD2 is the dense one; the solve is x = L⁻ᵀz with the gradient L⁻¹g."""
+    d2 = np.zeros((max(n - 2, 0), n))
+    for row in range(n - 2):
+        d2[row, row : row + 3] = (1, -2, 1)
+    gram = _banded_to_dense(_second_difference_gram(n))
+    assert np.allclose(gram + np.tril(gram, -1).T, d2.T @ d2)
+
+    rng = np.random.default_rng(0)
+    bands = np.stack([_second_difference_gram(n) * w for w in (3.0, 0.5)])
+    bands[:, 0] += rng.uniform(0.1, 1.0, (2, n))
+    factors = np.stack([scipy.linalg.cholesky_banded(b, lower=True) for b in bands])
+    for d in (1, 2):
+        factors[:, d, n - d :] = 0
+    stacked = _stacked_bands(factors)
+    z = torch.tensor(rng.normal(size=(2, n)), requires_grad=True)
+    x = _BandedTransposedSolve.apply(z, *stacked)
+    lower = _banded_to_dense(factors)
+    assert np.allclose(np.einsum("fji,fj->fi", lower, x.detach().numpy()), z.detach().numpy())
+    assert torch.autograd.gradcheck(lambda v: _BandedTransposedSolve.apply(v, *stacked), (z,))
+
+
+@pytest.mark.parametrize("name", ["allegro", "shadow"])
+def test_release_preconditioner_is_the_curvature_of_tracking_and_smoothness(name):
+    """For a trajectory holding one pose, L_j L_jᵀ of every free joint is half the Hessian of
+    the release's tracking and smoothness terms in that joint's change over the frames (the
+    ShadowHand's tendon followers moving with their leaders): the preconditioned coordinates
+    have unit curvature there."""
+    hand = load_hand(name)
+    params = RefineParams()
+    frames = 7
+    rng = np.random.default_rng(1)
+    pose = hand.clamp(hand.apply_couplings(
+        torch.as_tensor(rng.uniform(hand.lower, hand.upper)[None]).clamp(-0.5, 0.5)
+    ))  # fmt: skip
+    q0 = pose.repeat(frames, 1)
+    tips = torch.as_tensor(np.isin(hand.mano_indices, FINGERTIPS))
+    track_w = torch.where(tips, params.release_tip_weight, 1.0).to(hand.dtype)
+    curvature = _banded_to_dense(temporal_preconditioner(hand, q0, track_w, params))
+    curvature = curvature @ np.swapaxes(curvature, -1, -2)
+    with torch.no_grad():
+        kp0 = hand.keypoints(q0)
+
+    def second(x):
+        return x[2:] - 2 * x[1:-1] + x[:-2]
+
+    def energy(column, j):
+        q = q0.clone()
+        q[:, j] = q0[:, j] + column
+        q = hand.apply_couplings(q)
+        change = hand.keypoints(q) - kp0
+        return (
+            params.release_w_track * ((change**2).sum(-1) * track_w).sum()
+            + params.release_w_smooth * (second(change) ** 2).sum()
+            + params.release_w_smooth_joints * (second(q[:, 6:] - q0[:, 6:]) ** 2).sum()
+            + params.release_w_joints * ((q[:, 6:] - q0[:, 6:]) ** 2).sum()
+        )
+
+    free = hand.free_joints
+    leaders = {c.leader for c in hand.spec.couplings}
+    led = [i for i, j in enumerate(free) if hand.joint_names[j] in leaders]
+    for i in [0, 4, *led[:1], len(free) - 1]:  # base x, a base rotation, a leader, the last joint
+        zero = torch.zeros(frames, dtype=hand.dtype)
+        hessian = torch.autograd.functional.hessian(partial(energy, j=free[i]), zero).numpy()
+        assert np.allclose(curvature[i], hessian / 2, rtol=1e-3, atol=1e-6 * np.abs(hessian).max())
+
+
 def test_long_sequences_are_refined_in_cross_faded_windows(allegro):
     """A sequence longer than window_frames is refined in overlapping windows (bounded memory):
     every frame still freed, no step at the seams, close to refining it whole; a sequence no
@@ -272,12 +357,14 @@ def test_long_sequences_are_refined_in_cross_faded_windows(allegro):
     )  # fmt: skip
     assert windowed.shape == q.shape and e0.shape == e1.shape == (30,)
     assert np.all(_depth(allegro, windowed, pose, grid) < 0.0005)
-    # rad / m: the same solution, nearly (L-BFGS stops after release_iterations; with the
-    # fingertips tracked 30x the two stops differ by up to 0.01 rad, by 0.005 at 10x)
-    assert np.abs(windowed - whole).max() < 0.015
+    # rad / m: the same solution, nearly (each solve stops after release_iterations: they differ
+    # by up to 0.007 rad; without release_w_joints the thumb's joints, which place one keypoint,
+    # drifted apart by 0.18 rad)
+    assert np.abs(windowed - whole).max() < 0.01
     steps = np.abs(np.diff(windowed, axis=0)).max(axis=1)
     smooth = np.abs(np.diff(whole, axis=0)).max(axis=1)
-    assert steps.max() < 1.5 * smooth.max(), (steps, smooth)  # no jump where windows meet
+    # no jump where windows meet: the cross-fade spreads their difference over the shared frames
+    assert steps.max() < 2 * smooth.max(), (steps, smooth)
     lo, hi = allegro.lower.numpy(), allegro.upper.numpy()
     assert np.all(windowed >= lo - 1e-12) and np.all(windowed <= hi + 1e-12)
     short, _, _ = refine_trajectory(
