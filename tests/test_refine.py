@@ -342,6 +342,44 @@ def test_release_preconditioner_is_the_curvature_of_tracking_and_smoothness(name
         assert np.allclose(curvature[i], hessian / 2, rtol=1e-3, atol=1e-6 * np.abs(hessian).max())
 
 
+def test_release_preconditioner_makes_lbfgs_converge(allegro, monkeypatch):
+    """What the preconditioner is for: on a palm 8 mm inside over 30 frames, 60 energy
+    evaluations of the release reach within 5 % of the lowest energy 300 iterations find; in
+    plain coordinates (the factors replaced by the identity) they stay over twice as high."""
+    q, pose, grid = _palm_scene(allegro, 0.008, frames=30)
+    contact = np.zeros((len(q), 4), dtype=bool)
+    inv = torch.as_tensor(np.linalg.inv(pose))
+    energies: list[float] = []
+    step = torch.optim.LBFGS.step
+
+    def recorded(self, closure):
+        def traced():
+            energy = closure()
+            energies.append(float(energy.detach()))
+            return energy
+
+        return step(self, traced)
+
+    monkeypatch.setattr(torch.optim.LBFGS, "step", recorded)
+
+    def lowest(iterations: int, evaluations: int) -> float:
+        energies.clear()
+        params = RefineParams(release_iterations=iterations)
+        release_hand(allegro, q, inv, TorchSDF(grid), contact, params, rounds=1)
+        return min(energies[:evaluations])
+
+    optimum = lowest(300, 10**6)
+    assert lowest(60, 60) < 1.05 * optimum
+
+    def identity(hand, q0, track_w, params):
+        factors = np.zeros((len(hand.free_joints), 3, len(q0)))
+        factors[:, 0] = 1.0
+        return factors
+
+    monkeypatch.setattr("dexflow.refine.temporal_preconditioner", identity)
+    assert lowest(60, 60) > 2 * optimum
+
+
 def test_long_sequences_are_refined_in_cross_faded_windows(allegro):
     """A sequence longer than window_frames is refined in overlapping windows (bounded memory):
     every frame still freed, no step at the seams, close to refining it whole; a sequence no
