@@ -889,9 +889,9 @@ def grasp_breakdown(out: StageDir) -> dict[str, float]:
     ``tested`` and ``skipped`` frames (skipped: over the penetration tolerance, not tested),
     ``held`` (tested frames that hold), ``opposed`` (tested frames where the thumb and another
     finger touch the object at the start) and ``opposed_held`` (both 0, and ``thumb`` False,
-    for a hand without a finger named ``thumb``), and over
-    the tested frames that fail, the median ``displacement_mm`` and ``rotation_deg`` under the
-    first push (the test stops at the first failing direction).
+    for a hand without a finger named ``thumb``); over the tested frames that fail, the median
+    ``displacement_mm`` and ``rotation_deg`` under the first push (the test stops at the first
+    failing direction).
     """
     import json
 
