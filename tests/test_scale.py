@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import multiprocessing
+import os
 import signal
 import subprocess
 import sys
@@ -87,6 +89,27 @@ def test_map_items_keeps_order_and_reports_each_error(run):
     assert [r.error for r in results] == [None] * 3 + ["ValueError: item 3 is bad"] + [None] * 2
     assert "Traceback" in results[3].details
     assert results[3].entry() == {"status": "failed", "error": "ValueError: item 3 is bad"}
+
+
+def _where(item):
+    import torch
+
+    flag = item[1]
+    if multiprocessing.parent_process() is not None:
+        flag.touch()
+    for _ in range(1200):  # this process waits for a worker to take an item
+        if flag.exists():
+            break
+        time.sleep(0.05)
+    return {"pid": os.getpid(), "torch_threads": torch.get_num_threads()}
+
+
+def test_local_jobs_are_this_process_and_workers_each_with_one_thread(tmp_path):
+    items = [(x, tmp_path / "a worker took one") for x in range(4)]
+    results = map_items(_where, items, 2, progress=False)
+    pids = {r.value["pid"] for r in results}
+    assert os.getpid() in pids and len(pids) == 2  # this process and the worker
+    assert {r.value["torch_threads"] for r in results} == {1}
 
 
 def test_ray_is_optional_and_named_when_missing(monkeypatch):
