@@ -380,6 +380,7 @@ class RefineParams:
     release_w_smooth_joints: float = 1000.0
     release_w_joints: float = 0.01
     release_iterations: int = 60
+    release_first_iterations: int = 20
     release_rounds: int = 4
     release_depth_m: float = 0.004
     release_reach_m: float = 0.03
@@ -694,7 +695,7 @@ def validate(params: PipelineParams) -> PipelineParams:
     for key in ("w_dis", "w_pen", "w_align", "w_spen", "w_joints", "w_smooth", "learning_rate",
                 "release_w_pen", "release_w_touch", "release_w_track", "release_tip_weight",
                 "release_w_smooth", "release_w_smooth_joints", "release_w_joints",
-                "release_iterations",
+                "release_iterations", "release_first_iterations",
                 "release_depth_m", "release_reach_m"):  # fmt: skip
         _require(getattr(r, key) >= 0, f"refine.{key}", ">= 0", getattr(r, key))
     _require(r.release_rounds >= 1, "refine.release_rounds", ">= 1", r.release_rounds)

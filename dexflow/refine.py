@@ -42,7 +42,9 @@ the optimum unique where joints can move without moving a keypoint (a thumb with
 than keypoints): a change growing linearly over the frames has no second difference, so without
 it such a joint drifted by up to 0.5 rad over a sequence. The hand backs out of the object as a
 whole, the fingers flex back onto it, and the change varies smoothly over time. It is solved by L-BFGS
-over all frames at once (``release_iterations``; over each window of a long sequence), in
+over all frames at once (``release_iterations``; ``release_first_iterations`` for the release
+before the per-finger step, which only has to get the palm out of the way: the last one starts
+from the finger step's result; over each window of a long sequence), in
 coordinates where the tracking and smoothness terms have unit curvature along time
 (:func:`temporal_preconditioner`: the same energy and optimum, reached in fewer iterations). A
 quadratic penalty trades depth against the other terms, so the deepest frames of a real capture
@@ -338,7 +340,8 @@ def _refine_whole(
     inv = torch.as_tensor(np.linalg.inv(obj_pose), dtype=hand.dtype)
     q_start = q_init
     if params.release:
-        q_start = release_hand(hand, q_init, inv, sdf, contact, params, rounds=1)
+        first = replace(params, release_iterations=params.release_first_iterations)
+        q_start = release_hand(hand, q_init, inv, sdf, contact, first, rounds=1)
     q, energy_before, energy_after = _finger_step(hand, q_start, inv, sdf, contact, cmap, params)
     if params.release:
         q = release_hand(hand, q, inv, sdf, contact, params, reference=q_init)
