@@ -185,9 +185,11 @@ def _map_joblib(func: Callable, items: list, n_jobs: int, bar: tqdm) -> list[Ite
     order = iter(range(len(items)))
     lock = threading.Lock()
 
+    stop = threading.Event()  # set on an interrupt: the thread below takes no more items
+
     def take() -> int | None:
         with lock:
-            return next(order, None)
+            return None if stop.is_set() else next(order, None)
 
     def work_here() -> None:
         torch = sys.modules.get("torch")  # loaded by every stage that computes with it
@@ -207,36 +209,42 @@ def _map_joblib(func: Callable, items: list, n_jobs: int, bar: tqdm) -> list[Ite
     if processes > 1:
         workers = get_reusable_executor(max_workers=processes - 1, env=_ONE_THREAD)
         ready = workers.submit(_ready, func)
+
+    def pool_failed(i: int, exc: Exception) -> None:
+        reason = _reason(exc).splitlines()[0].split(". ")[0]
+        log.error("worker pool failed on %s: %s; the rest run here", items[i], reason)
+        error = f"no result, the worker pool failed ({reason})"
+        results[i] = ItemResult(items[i], error=error, details=traceback.format_exc(), retry=True)
+
     with ThreadPoolExecutor(1, thread_name_prefix="dexflow-map") as here_pool:
         here = here_pool.submit(work_here)
         pending: dict[Any, int] = {}
-        while True:
-            if ready is not None and ready.done():
-                if ready.exception() is not None:
-                    log.error("worker pool failed to start: %s; all items run here",
-                              _reason(ready.exception()))  # fmt: skip
-                    processes = 1
-                ready = None
-            while ready is None and len(pending) < processes - 1 and (i := take()) is not None:
-                pending[workers.submit(_run, func, items[i])] = i
-            if here.done() and not pending:
-                break  # every item has its result (a worker still starting is not waited for)
-            waiting = [*pending, *[f for f in (here, ready) if f is not None and not f.done()]]
-            for future in wait(waiting, return_when=FIRST_COMPLETED)[0]:
-                if future not in pending:
-                    continue
-                i = pending.pop(future)
-                try:
-                    results[i] = future.result()
-                except Exception as exc:  # only the pool itself raises (_run catches the items')
-                    reason = _reason(exc).splitlines()[0].split(". ")[0]
-                    log.error("worker pool failed on %s: %s; the rest run here", items[i], reason)
-                    error = f"no result, the worker pool failed ({reason})"
-                    results[i] = ItemResult(items[i], error=error, details=traceback.format_exc())
-                    results[i].retry = True
-                    processes = 1  # nothing more to the pool
-                bar.update()
-        here.result()  # re-raises what _run does not catch (KeyboardInterrupt)
+        try:
+            while True:
+                if ready is not None and ready.done():
+                    if ready.exception() is not None:
+                        log.error("worker pool failed to start: %s; all items run here",
+                                  _reason(ready.exception()))  # fmt: skip
+                        processes = 1
+                    ready = None
+                while ready is None and len(pending) < processes - 1 and (i := take()) is not None:
+                    pending[workers.submit(_run, func, items[i])] = i
+                if here.done() and not pending:
+                    break  # every item has its result (a worker still starting is not waited for)
+                waiting = [*pending, *[f for f in (here, ready) if f and not f.done()]]
+                for future in wait(waiting, return_when=FIRST_COMPLETED)[0]:
+                    if future in pending:
+                        i = pending.pop(future)
+                        try:
+                            results[i] = future.result()
+                        except Exception as exc:  # the pool's own (_run catches the items')
+                            pool_failed(i, exc)
+                            processes = 1  # nothing more to the pool
+                        bar.update()
+        except BaseException:  # Ctrl-C: end with the item this process is on
+            stop.set()
+            raise
+        here.result()  # re-raises what _run does not catch
     if ready is not None:  # still starting: of no use now
         workers.shutdown(wait=False, kill_workers=True)
     return results
