@@ -30,6 +30,21 @@ def test_box_matches_analytic_distance():
     np.testing.assert_allclose(signed_distance(box, points), _box_sdf(points, half), atol=1e-9)
 
 
+def test_points_on_the_surface_are_outside_on_a_grid_and_off_it():
+    # A box whose faces lie on grid planes (the padding a whole number of spacings): the
+    # winding number of a node on a face is 0.5 only up to rounding, which varied from run to
+    # run; on the surface the signed distance is +distance, whatever that rounding.
+    half = np.array([0.03, 0.02, 0.04])
+    box = trimesh.creation.box(extents=2 * half)
+    grid = SignedDistanceGrid.from_mesh(box, spacing=0.002, padding=0.01)
+    nodes = grid.origin + grid.spacing * _nodes([np.arange(n) for n in grid.values.shape])
+    on_face = np.abs(_box_sdf(nodes, half)) < 1e-12
+    assert on_face.sum() > 1000
+    assert (grid.values.reshape(-1)[on_face] >= 0).all()
+    assert (signed_distance(box, nodes[on_face]) >= 0).all()
+    assert (grid.values.reshape(-1)[_box_sdf(nodes, half) < -1e-6] < 0).all()
+
+
 def test_sign_survives_holes():
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
     holed = _holed(sphere, below=-0.042)  # the bottom cap is missing, as in a scan on a table
