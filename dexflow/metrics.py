@@ -59,7 +59,7 @@ from scipy.spatial import ConvexHull
 
 from dexflow.hands.files import staged_spec
 from dexflow.hands.robot import RobotHand, cached_hand
-from dexflow.human.keypoints import FINGERS, FINGERTIPS
+from dexflow.human.keypoints import FINGERS
 from dexflow.io.artifacts import (
     MetricFrames,
     ObjectAssets,
@@ -242,7 +242,7 @@ def trajectory_metrics(
         robot = hand.keypoints(torch.as_tensor(q, dtype=hand.dtype)).numpy()
     distance = np.linalg.norm(robot - human, axis=-1)  # (T, K)
     error = np.where(observed, distance.mean(axis=1), np.nan)
-    tips = [i for i, m in enumerate(hand.mano_indices) if m in FINGERTIPS]
+    tips = hand.fingertip_keypoints
     tip_error = np.where(observed, distance[:, tips].mean(axis=1), np.nan)
     chamfer = np.full(len(q), np.nan)
     if observed.any():

@@ -91,7 +91,6 @@ from dexflow.errors import ArtifactError
 from dexflow.geometry import rotate_vectors, transform_points
 from dexflow.hands.files import staged_spec
 from dexflow.hands.robot import RobotHand, cached_hand
-from dexflow.human.keypoints import FINGERTIPS
 from dexflow.io.artifacts import (
     ObjectAssets,
     Trajectory,
@@ -402,8 +401,8 @@ def release_hand(
     masks = torch.as_tensor(np.stack(list(hand.finger_point_masks.values())))  # (F, N)
     touching = torch.as_tensor(np.asarray(contact, dtype=bool))  # (T, F)
     lo, hi = hand.lower[free], hand.upper[free]
-    tips = [m in FINGERTIPS for m in hand.mano_indices]
-    track_w = torch.where(torch.as_tensor(tips), params.release_tip_weight, 1.0).to(hand.dtype)
+    track_w = torch.ones(len(hand.mano_indices), dtype=hand.dtype)
+    track_w[hand.fingertip_keypoints] = params.release_tip_weight
     bands = _stacked_bands(temporal_preconditioner(hand, q0, track_w, params))
     z = torch.zeros(len(free), len(q0), dtype=hand.dtype, requires_grad=True)  # delta = L⁻ᵀ z
     margin = params.pen_margin_m

@@ -53,7 +53,6 @@ from dexflow.hands.files import staged_spec
 from dexflow.hands.jacobian import KeypointJacobian
 from dexflow.hands.robot import RobotHand, cached_hand
 from dexflow.human.cleaning import detect_bad_frames
-from dexflow.human.keypoints import FINGERTIPS
 from dexflow.io.artifacts import Trajectory, write_trajectory
 from dexflow.io.layout import Layout
 from dexflow.io.sequence import Sequence, load_sequence
@@ -517,7 +516,7 @@ def _sequence_metrics(result: RetargetResult, hand: RobotHand, seq: Sequence) ->
     clean, true hand (only there). The velocity KL against the observed hand is the metrics
     stage's alone (pooled over sequences)."""
     fps = seq.fps
-    tips = [i for i, m in enumerate(hand.mano_indices) if m in FINGERTIPS]
+    tips = hand.fingertip_keypoints
     observed = result.observed
     out = {
         "frames": len(result.q),

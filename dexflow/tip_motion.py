@@ -27,7 +27,6 @@ import numpy as np
 import torch
 
 from dexflow.geometry import world_to_object
-from dexflow.human.keypoints import FINGERTIPS
 
 if TYPE_CHECKING:
     from dexflow.hands.robot import RobotHand
@@ -69,7 +68,7 @@ def fingertip_motion(
             hand.keypoints(torch.as_tensor(q[observed], dtype=hand.dtype)).numpy()
             for q in (q_from, q_to)
         ]
-    tips = [i for i, m in enumerate(hand.mano_indices) if m in FINGERTIPS]
+    tips = hand.fingertip_keypoints
     palm = [i for i, m in enumerate(hand.mano_indices) if m == 0]
     start, end = (k[:, tips] for k in keypoints)
     human_tips = np.asarray(human)[observed][:, tips]

@@ -19,6 +19,7 @@ from pytorch_kinematics.transforms import euler_angles_to_matrix
 from dexflow.errors import HandConfigError
 from dexflow.hands.model import KinematicModel, load_kinematic_model, resolve_model_path
 from dexflow.hands.spec import HandSpec, load_hand_spec
+from dexflow.human.keypoints import FINGERTIPS
 
 __all__ = ["BASE_JOINT_NAMES", "RobotHand", "cached_hand", "load_hand"]
 
@@ -71,6 +72,7 @@ class RobotHand:
         lower, upper: (dof,) joint limits (the base gets wide finite bounds).
         keypoint_links: Frames matched to human keypoints, in ``spec.keypoints`` order.
         mano_indices: Human keypoint index of each.
+        fingertip_keypoints: Indices into the keypoints of those matched to human fingertips.
         fingers: Finger name -> indices into ``q`` of its joints.
         finger_point_masks: Finger name -> (N,) surface points on its contact ``links``.
     """
@@ -111,6 +113,7 @@ class RobotHand:
 
         self.keypoint_links = [k.link for k in spec.keypoints]
         self.mano_indices = [k.mano for k in spec.keypoints]
+        self.fingertip_keypoints = [i for i, m in enumerate(self.mano_indices) if m in FINGERTIPS]
         self.fingers = {f: [index[j] for j in fs.joints] for f, fs in spec.fingers.items()}
         self._coupled = torch.tensor([index[c.joint] for c in spec.couplings], dtype=torch.long)
         self._leader = torch.tensor([index[c.leader] for c in spec.couplings], dtype=torch.long)
