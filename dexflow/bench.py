@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from dexflow.io.layout import Layout, StageDir
+from dexflow.params import SimulateParams
 from dexflow.tip_motion import NEAR_M
 
 __all__ = [
@@ -844,7 +845,7 @@ def bench_real(
             "metrics": {k: v for k, v in summary.items() if k != "sequences"},
             "simulate": simulated,
             "motion": refine_motion(params, layout),
-            "grasps": {m: grasp_breakdown(layout.simulate(m)) for m in simulated},
+            "grasps": {m: grasp_breakdown(layout.simulate(m), params.simulate) for m in simulated},
             "seconds": seconds,
             "sequences": count,
             "frames": frames,
@@ -882,7 +883,7 @@ def refine_motion(params, layout: Layout) -> dict[str, float]:
     return summarize_motion(parts)
 
 
-def grasp_breakdown(out: StageDir) -> dict[str, float]:
+def grasp_breakdown(out: StageDir, params: SimulateParams | None = None) -> dict[str, float]:
     """Which frames a method's grasp test counts, and how the tested ones fail.
 
     From stage simulate's rows in ``out`` (its first engine; robust DexGraspBench criterion):
@@ -891,15 +892,22 @@ def grasp_breakdown(out: StageDir) -> dict[str, float]:
     finger touch the object at the start) and ``opposed_held`` (both 0, and ``thumb`` False,
     for a hand without a finger named ``thumb``); over the tested frames that fail, the median
     ``displacement_mm`` and ``rotation_deg`` under the first push (the test stops at the first
-    failing direction).
+    failing direction) and ``lost_closing``, how many of them had already moved or turned
+    beyond the criterion's thresholds (``params``: ``max_displacement_m``,
+    ``max_rotation_deg``) while the fingers closed, before any push (0 for an engine that
+    holds the object then); the median ``imbalance`` of the pushes
+    (:func:`dexflow.grasp_protocol.imbalance`: 0 opposed, 1 one-sided) of the held frames
+    (``imbalance_held``) and of the failed ones (``imbalance_failed``).
     """
     import json
 
     from dexflow.io.artifacts import read_simulation
 
+    p = params or SimulateParams()
     summary = json.loads(out.summary.read_text())
-    counts = dict.fromkeys(("tested", "held", "opposed", "opposed_held"), 0)
+    counts = dict.fromkeys(("tested", "held", "opposed", "opposed_held", "lost_closing"), 0)
     displacement, rotation, thumb = [], [], True
+    balance: dict[bool, list[float]] = {True: [], False: []}
     for path in out.sequence_files():
         result = read_simulation(path)
         rows, engine = result.rows, result.engines[0]
@@ -909,12 +917,17 @@ def grasp_breakdown(out: StageDir) -> dict[str, float]:
         opposed = np.zeros(len(held), dtype=bool)
         if "thumb" in result.fingers:
             opposed = touching[:, result.fingers.index("thumb")] & (touching.sum(1) >= 2)
+        moved = rows[f"{engine}.closing_displacement_m"] >= p.max_displacement_m
+        closing = moved | (rows[f"{engine}.closing_rotation_deg"] >= p.max_rotation_deg)
         counts["tested"] += len(held)
         counts["held"] += int(held.sum())
         counts["opposed"] += int(opposed.sum())
         counts["opposed_held"] += int((opposed & held).sum())
+        counts["lost_closing"] += int((closing & ~held).sum())
         displacement += list(rows[f"{engine}.displacement_m"][~held, 0])
         rotation += list(rows[f"{engine}.rotation_deg"][~held, 0])
+        for kept in (True, False):
+            balance[kept] += list(rows[f"{engine}.imbalance"][held == kept])
     failed = np.array(displacement, dtype=float)
     return {
         **counts,
@@ -922,7 +935,16 @@ def grasp_breakdown(out: StageDir) -> dict[str, float]:
         "thumb": thumb,
         "displacement_mm": 1000 * float(np.nanmedian(failed)) if len(failed) else float("nan"),
         "rotation_deg": float(np.nanmedian(rotation)) if rotation else float("nan"),
+        "imbalance_held": _median(balance[True]),
+        "imbalance_failed": _median(balance[False]),
     }
+
+
+def _median(values: list[float]) -> float:
+    """The median of the finite ``values`` (NaN when there are none)."""
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    return float(np.median(finite)) if len(finite) else float("nan")
 
 
 def _grasp_lines(results: dict[str, dict]) -> list[str]:
@@ -932,20 +954,30 @@ def _grasp_lines(results: dict[str, dict]) -> list[str]:
         return []
     lines = [
         "Which frames the grasp test counts and how they fail (robust DexGraspBench criterion, "
-        "first engine; *opposed*: the thumb and another finger touch the object at the start):",
+        "first engine; *opposed*: the thumb and another finger touch the object at the start; "
+        "*lost while closing*: the object moved or turned past the criterion's thresholds "
+        "while the fingers closed, before any push; *imbalance*: how one-sided the pushes into "
+        "the object are, 0 when they cancel, 1 when all press the same way, "
+        "`dexflow/grasp_protocol.py`):",
         "",
         "| hand | method | frames tested | skipped (over the penetration tolerance) | held "
         "| opposed | opposed and held | failed: median displacement mm / rotation ° "
-        "under the first push |",
-        "|---|---|---|---|---|---|---|---|",
+        "under the first push | failed: lost while closing | median imbalance held / failed |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for hand, method, g in rows:
         opposed = f"{g['opposed']} | {g['opposed_held']}" if g["thumb"] else "— | —"
         lines.append(
             f"| {hand} | {method} | {g['tested']} | {g['skipped']} | {g['held']} | {opposed} "
-            f"| {g['displacement_mm']:.0f} / {g['rotation_deg']:.0f} |"
+            f"| {g['displacement_mm']:.0f} / {g['rotation_deg']:.0f} | {g['lost_closing']} "
+            f"| {_number(g['imbalance_held'])} / {_number(g['imbalance_failed'])} |"
         )
     return lines
+
+
+def _number(value: float) -> str:
+    """``value`` with two decimals, or — when it is NaN."""
+    return "—" if not np.isfinite(value) else f"{value:.2f}"
 
 
 def _motion_lines(results: dict[str, dict]) -> list[str]:

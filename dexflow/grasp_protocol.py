@@ -27,6 +27,7 @@ __all__ = [
     "TOUCH_M",
     "Perturbation",
     "damped_step",
+    "imbalance",
     "perturbations",
     "pushed_configuration",
 ]
@@ -53,6 +54,21 @@ def damped_step(jacobian: np.ndarray, moves: np.ndarray) -> np.ndarray:
     """
     damping = DLS_DAMPING**2 * np.eye(len(jacobian))
     return jacobian.T @ np.linalg.solve(jacobian @ jacobian.T + damping, moves)
+
+
+def imbalance(normals: np.ndarray) -> float:
+    """How one-sided the pushes of a grasp are: ``||Σ n_i|| / N`` over the unit directions
+    ``n_i`` (N, 3) along which the N pushed links press into the object.
+
+    0 when the pushes cancel (opposed contacts: the squeeze tightens the grasp), 1 when all
+    press the same way (the squeeze shoves the object away, which no friction resists when the
+    object is free); NaN without contacts. A diagnostic of the test, not a criterion.
+    """
+    normals = np.asarray(normals, dtype=float).reshape(-1, 3)
+    if not len(normals):
+        return float("nan")
+    unit = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    return float(np.linalg.norm(unit.sum(0)) / len(unit))
 
 
 def pushed_configuration(

@@ -54,6 +54,15 @@ Protocol for one frame ``(q, T)`` (numbers from ``params.mujoco`` unless said ot
    ``max_displacement_m`` or the rotation ``max_rotation_deg``.
 4. ``held``: the object touches the hand (a contact closer than 1 mm) at the end of the test.
 
+Two diagnostics of why a frame fails, not criteria: how far the object moved and turned while
+the fingers closed, before any push (``closing_displacement_m``, ``closing_rotation_deg``,
+measured in the first direction's run; every direction closes the same way from a reset world),
+and how one-sided the pushes of step 2 are (``imbalance``,
+:func:`dexflow.grasp_protocol.imbalance` of the directions into the object at the pushed
+bodies' closest contacts: 0 when they cancel, 1 when all press the same way). With gravity off
+and the object free, a squeeze that is not opposed shoves the object out of the hand before any
+force is applied: such a frame fails in its first direction, whatever that is.
+
 As in DexGraspBench, a frame's test **stops at the first failing direction**: the remaining
 ones are untested (``tested`` False, NaN displacement and rotation, ``held`` False). Criteria:
 ``bench`` (DexGraspBench): all six tested and within both thresholds; ``contact`` (the paper):
@@ -81,6 +90,7 @@ from dexflow.grasp_protocol import (
     TOUCH_M,
     Perturbation,
     damped_step,
+    imbalance,
     pushed_configuration,
 )
 from dexflow.hands.files import urdf_mesh_path
@@ -437,6 +447,13 @@ class MujocoGraspWorld:
             between a hand geom and the object's parts, and the names of the hand bodies within
             ``contact_margin_m`` of the object.
         """
+        configs, penetration, names, _ = self._targets(q, pose)
+        return configs, penetration, names
+
+    def _targets(
+        self, q: np.ndarray, pose: np.ndarray
+    ) -> tuple[dict, float, list[str], np.ndarray]:
+        """:meth:`targets`, and the (L, 3) directions in which the L pushed bodies press."""
         self._require_object("targets")
         p, hand, m = self.params, self.hand, self.model
         q, pose = np.asarray(q, dtype=float), np.asarray(pose, dtype=float)
@@ -444,7 +461,8 @@ class MujocoGraspWorld:
         found = self._contacts(p.contact_margin_m)
         penetration = float(max(0.0, -found["dist"].min())) if len(found["dist"]) else 0.0
         if not len(found["body"]):
-            return {"pregrasp": q.copy(), "grasp": q.copy(), "squeeze": q.copy()}, 0.0, []
+            same = {"pregrasp": q.copy(), "grasp": q.copy(), "squeeze": q.copy()}
+            return same, 0.0, [], np.zeros((0, 3))
         order = np.lexsort((found["dist"], found["body"]))  # by body, closest first
         bodies, first = np.unique(found["body"][order], return_index=True)
         closest = order[first]
@@ -461,7 +479,7 @@ class MujocoGraspWorld:
         out = {"grasp": q.copy()}
         for k, key in enumerate(depths):
             out[key] = pushed_configuration(hand, q, self._free_hand, steps[:, k])
-        return out, penetration, names
+        return out, penetration, names, normal
 
     def test_frame(
         self, q: np.ndarray, pose: np.ndarray, perturbation: Perturbation | None = None
@@ -475,10 +493,14 @@ class MujocoGraspWorld:
                 nominal test).
 
         Returns:
-            ``parts_penetration_m`` (float), ``pushed_links`` (int), ``touching (F,)`` bool per
-            finger of the hand config, ``held (6,)``, ``displacement_m (6,)``,
-            ``rotation_deg (6,)``, ``tested (6,)`` and the criteria ``contact``, ``bench``
-            (bools); directions in :data:`dexflow.simulate.DIRECTIONS` order.
+            ``parts_penetration_m`` (float), ``pushed_links`` (int), ``imbalance`` (float,
+            :func:`dexflow.grasp_protocol.imbalance` of the pushed bodies' directions into the
+            object), ``closing_displacement_m`` and ``closing_rotation_deg`` (floats: how far
+            the object moved and turned while the fingers closed, before any push; NaN in
+            pybullet's test, which holds the object then), ``touching (F,)`` bool per finger of
+            the hand config, ``held (6,)``, ``displacement_m (6,)``, ``rotation_deg (6,)``,
+            ``tested (6,)`` and the criteria ``contact``, ``bench`` (bools); directions in
+            :data:`dexflow.simulate.DIRECTIONS` order.
         """
         self._require_object("test_frame")
         p, mp, m, d = self.params, self.params.mujoco, self.model, self.data
@@ -489,7 +511,7 @@ class MujocoGraspWorld:
         scale = 1.0 if perturbation is None else perturbation.friction_scale
         m.geom_friction[:, 0] = self._friction * scale
         try:
-            configs, penetration, pushed = self.targets(q, pose)
+            configs, penetration, pushed, normals = self._targets(q, pose)
             touching = np.array(
                 [bool(set(pushed) & set(fs.links)) for fs in self.hand.spec.fingers.values()]
             )
@@ -497,6 +519,7 @@ class MujocoGraspWorld:
             displacement = np.full(6, np.nan)
             rotation = np.full(6, np.nan)
             tested = np.zeros(6, bool)
+            closing = (np.nan, np.nan)
             force = mp.force_scale * mp.object_mass_kg
             for k, direction in enumerate(DIRECTIONS):
                 tested[k] = True
@@ -504,6 +527,8 @@ class MujocoGraspWorld:
                 start = d.qpos[self._object_qpos].copy()
                 self._drive(configs["pregrasp"], configs["grasp"])
                 self._drive(configs["grasp"], configs["squeeze"])
+                if k == 0:  # every direction closes the same way from a reset world
+                    closing = self._moved(start)
                 d.xfrc_applied[self._object, :3] = force * direction
                 for _ in range(mp.hold_checks):
                     mujoco.mj_step(m, d, nstep=mp.steps_per_check)
@@ -519,6 +544,9 @@ class MujocoGraspWorld:
         return {
             "parts_penetration_m": penetration,
             "pushed_links": len(pushed),
+            "imbalance": imbalance(normals),
+            "closing_displacement_m": closing[0],
+            "closing_rotation_deg": closing[1],
             "touching": touching,
             "held": held,
             "displacement_m": displacement,

@@ -170,7 +170,11 @@ def write_summary(
         "their deep overlaps are the engine's slowest steps). Starting penetration is the "
         "deepest point of the hand's collision geometry inside the object's mesh (signed "
         "distance, the definition of PD); the overlap with the convex parts the physics uses "
-        "(which bulge beyond a scanned mesh by millimetres) is shown beside it.",
+        "(which bulge beyond a scanned mesh by millimetres) is shown beside it. Why frames "
+        "fail: *lost while the fingers closed* counts the tested frames whose object moved or "
+        "turned past the DexGraspBench thresholds before any push (MuJoCo; pybullet holds it "
+        "then), and *imbalance* is how one-sided the pushes into the object are, 0 when they "
+        "cancel, 1 when all press the same way (`dexflow/grasp_protocol.py`).",
         "",
         *_replay_section(stage, replay_dirs or {}, figures_dir, rel),
         "## Motion quality (paper Table III layout)",
@@ -440,13 +444,14 @@ def _simulation_table(stage: dict) -> list[str]:
     lines = [
         "| method | SSR % | SSR without the rule % | SSR DexGraspBench % | DexGraspBench without "
         "the rule % | frames tested | starting penetration mm (mean) | frames over the tolerance % "
-        "| on the convex parts: mm (mean) | over the tolerance % |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| on the convex parts: mm (mean) | over the tolerance % | lost while the fingers "
+        "closed % | imbalance (mean) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for method, label in METHOD_LABELS.items():
         sim = stage.get(f"simulate_{method}")
         if not sim:
-            lines.append(f"| {label} |" + " — |" * 9)
+            lines.append(f"| {label} |" + " — |" * 11)
             continue
         cells = [_cell(sim.get(k)) for k in ("ssr", "ssr_raw", "ssr_bench", "ssr_bench_raw")]
         cells += [str(sim.get("frames_evaluated", "—")), _cell(sim.get("penetration_mean_mm"))]
@@ -454,6 +459,9 @@ def _simulation_table(stage: dict) -> list[str]:
         cells.append(_cell(sim.get("parts_penetration_mean_mm")))
         parts_over = sim.get("parts_over_tolerance")
         cells.append("—" if parts_over is None else _cell(100 * parts_over, 0))
+        lost = sim.get("lost_closing")
+        cells.append("—" if lost is None else _cell(100 * lost, 0))
+        cells.append(_cell(sim.get("imbalance_mean")))
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines
 

@@ -92,6 +92,7 @@ from dexflow.grasp_protocol import (
     TOUCH_M,
     Perturbation,
     damped_step,
+    imbalance,
     perturbations,
     pushed_configuration,
 )
@@ -327,6 +328,11 @@ class GraspWorld:
             Target ``q`` (dof,), the deepest overlap (m, >= 0) between a hand link and the
             object's convex parts, the names of the links within ``contact_margin_m``.
         """
+        target, penetration, links, _ = self._push_targets(q)
+        return target, penetration, links
+
+    def _push_targets(self, q: np.ndarray) -> tuple[np.ndarray, float, list[str], np.ndarray]:
+        """:meth:`push_targets`, and the (L, 3) directions in which the L links press."""
         p, hand = self.params, self.hand
         points = self._closest(p.contact_margin_m)
         penetration = max([0.0] + [-pt[8] for pt in points])
@@ -336,7 +342,7 @@ class GraspWorld:
                 per_link[pt[3]] = pt
         links = [self.link_names[i] for i in sorted(per_link)]
         if not links:
-            return q.copy(), penetration, []
+            return q.copy(), penetration, [], np.zeros((0, 3))
         # Jacobian of the contact points by forward differences over the free hand joints
         free = [j for j in hand.free_joints if j >= 6]
         step = 1e-6
@@ -352,7 +358,8 @@ class GraspWorld:
         moved = np.einsum("flij,lj->fli", frames[..., :3, :3], local) + frames[..., :3, 3]
         jac = ((moved[1:] - moved[0]) / step).reshape(len(free), -1).T  # (3L, F)
         target = (-(gap + p.push_m)[:, None] * normal).reshape(-1)
-        return pushed_configuration(hand, q, free, damped_step(jac, target)), penetration, links
+        pushed = pushed_configuration(hand, q, free, damped_step(jac, target))
+        return pushed, penetration, links, -normal
 
     def test_frame(
         self, q: np.ndarray, pose: np.ndarray, perturbation: Perturbation | None = None
@@ -368,7 +375,10 @@ class GraspWorld:
         Returns:
             ``parts_penetration_m`` (deepest overlap with the convex parts, a diagnostic; the
             penetration rule is :func:`simulate_sequence`'s, on the mesh), ``pushed_links``
-            (how many links touch the object and are pushed), ``touching (F,)`` (which of the
+            (how many links touch the object and are pushed), ``imbalance``
+            (:func:`dexflow.grasp_protocol.imbalance` of their directions into the object),
+            ``closing_displacement_m`` and ``closing_rotation_deg`` (NaN: this test holds the
+            object still while the fingers close), ``touching (F,)`` (which of the
             hand's fingers, in the hand config's order, have such a link), ``held (6,)``,
             ``displacement_m (6,)``, ``rotation_deg (6,)``, ``tested (6,)`` and the two
             criteria ``contact``, ``bench`` (before the penetration rule).
@@ -383,7 +393,7 @@ class GraspWorld:
         self._build()
         self._set_hand(q)
         self._set_object(pose)
-        target, penetration, pushed = self.push_targets(q)
+        target, penetration, pushed, directions = self._push_targets(q)
         touching = np.array(
             [bool(set(pushed) & set(fs.links)) for fs in self.hand.spec.fingers.values()]
         )
@@ -419,6 +429,9 @@ class GraspWorld:
         result = {
             "parts_penetration_m": penetration,
             "pushed_links": len(pushed),
+            "imbalance": imbalance(directions),
+            "closing_displacement_m": float("nan"),
+            "closing_rotation_deg": float("nan"),
             "touching": touching,
             "held": held,
             "displacement_m": displacement,
@@ -645,6 +658,12 @@ def _engine_result(arrays: dict, engine: str, hit: dict, p: SimulateParams) -> d
     for key in _CRITERIA:
         flipped |= arrays[f"{engine}.{key}_single"] != arrays[f"{engine}.{key}"]
     raw = p.test_over_tolerance  # else the frames over the tolerance were not tested
+    closing = arrays[f"{engine}.closing_displacement_m"]
+    lost = (closing >= p.max_displacement_m) | (
+        arrays[f"{engine}.closing_rotation_deg"] >= p.max_rotation_deg
+    )
+    balance = arrays[f"{engine}.imbalance"]
+    balance = balance[np.isfinite(balance)]
     return {
         "success_contact": hit["contact"] is not None,
         "success_bench": hit["bench"] is not None,
@@ -654,6 +673,10 @@ def _engine_result(arrays: dict, engine: str, hit: dict, p: SimulateParams) -> d
         "flipped_frames": int(flipped.sum()),
         "parts_penetration_mean_mm": float(parts.mean() * 1000) if len(parts) else 0.0,
         "parts_over_tolerance": float((parts > p.penetration_tol_m).mean()) if len(parts) else 0.0,
+        # None: this engine's test holds the object while the fingers close (pybullet)
+        "lost_closing_frames": None if np.isnan(closing).any() else int(lost.sum()),
+        "imbalance_sum": float(balance.sum()),
+        "imbalance_frames": len(balance),
     }
 
 
@@ -736,7 +759,11 @@ def run_simulate(params: PipelineParams, layout: Layout, label: str) -> dict:
 
 def _engine_summary(entries: list[dict], evaluated: int) -> dict:
     """One engine's aggregates over the sequences the stage processed (SSRs in %; ``flipped``:
-    the share of evaluated frames whose nominal trial and robust result differ)."""
+    the share of evaluated frames whose nominal trial and robust result differ;
+    ``lost_closing``: the share whose object moved or turned past the DexGraspBench thresholds
+    while the fingers closed, before any push, None for an engine that holds it then;
+    ``imbalance_mean``: the mean :func:`dexflow.grasp_protocol.imbalance` of the frames with a
+    contact)."""
 
     def percent(key: str) -> float | None:
         values = [e[key] for e in entries]
@@ -748,6 +775,8 @@ def _engine_summary(entries: list[dict], evaluated: int) -> dict:
         return float(np.mean([e[key] for e in entries])) if entries else float("nan")
 
     flipped = sum(e["flipped_frames"] for e in entries)
+    lost = [e["lost_closing_frames"] for e in entries]
+    balanced = sum(e["imbalance_frames"] for e in entries)
     return {
         "ssr": percent("success_contact"),
         "ssr_bench": percent("success_bench"),
@@ -756,6 +785,10 @@ def _engine_summary(entries: list[dict], evaluated: int) -> dict:
         "parts_penetration_mean_mm": mean("parts_penetration_mean_mm"),
         "parts_over_tolerance": mean("parts_over_tolerance"),
         "flipped": flipped / evaluated if evaluated else 0.0,
+        "lost_closing": (None if None in lost else (sum(lost) / evaluated if evaluated else 0.0)),
+        "imbalance_mean": (
+            sum(e["imbalance_sum"] for e in entries) / balanced if balanced else float("nan")
+        ),
     }
 
 

@@ -105,11 +105,15 @@ def test_table_says_where_refinement_moved_the_fingertips():
                      "2.8", "10.3"]  # fmt: skip
 
 
-def _simulated(out: StageDir, name: str, touching, bench, displacement_m) -> None:
+def _simulated(
+    out: StageDir, name: str, touching, bench, displacement_m, closing_m=None, imbalance=None
+) -> None:
     """A simulate output of len(bench) tested frames (engine mujoco; thumb, index, middle)."""
     n = len(bench)
     rows = {"frame": np.arange(n), "penetration_m": np.zeros(n)}
     rows |= {f"mujoco.{k}": np.zeros(n) for k in ENGINE_KEYS}
+    rows["mujoco.closing_displacement_m"] = np.array(closing_m or [0.0] * n, dtype=float)
+    rows["mujoco.imbalance"] = np.array(imbalance or [np.nan] * n, dtype=float)
     for key in ("held", "rotation_deg", "tested"):
         rows[f"mujoco.{key}"] = np.zeros((n, 6))
     rows["mujoco.touching"] = np.array(touching, dtype=bool).reshape(n, 3)
@@ -126,8 +130,8 @@ def test_grasp_breakdown_counts_opposed_and_held_frames(tmp_path):
     the failed frames' median displacement under the first push, pooled over sequences."""
     out = StageDir(tmp_path / "simulate")
     _simulated(out, "a", [[1, 1, 0], [1, 0, 0], [0, 1, 1]], [True, False, False],
-               [0.001, 0.2, 0.1])  # fmt: skip
-    _simulated(out, "b", [[1, 0, 1]], [False], [0.05])
+               [0.001, 0.2, 0.1], [0.0, 0.06, 0.01], [0.1, 0.9, 0.7])  # fmt: skip
+    _simulated(out, "b", [[1, 0, 1]], [False], [0.05], [np.nan], [np.nan])
     out.summary.write_text('{"frames_skipped": 4}')
     g = grasp_breakdown(out)
     assert (g["tested"], g["skipped"], g["held"], g["opposed"], g["opposed_held"]) == (
@@ -138,9 +142,13 @@ def test_grasp_breakdown_counts_opposed_and_held_frames(tmp_path):
         1,
     )
     assert g["displacement_mm"] == 100.0 and g["thumb"]
+    # one failed frame moved 6 cm (> the 5 cm threshold) before the push; NaN (an engine that
+    # holds the object while closing) counts as not lost; the medians skip NaN
+    assert g["lost_closing"] == 1
+    assert (g["imbalance_held"], g["imbalance_failed"]) == (0.1, 0.8)
     text = _real_table(
         {"shadow": {"metrics": {}, "seconds": {"retarget@dexflow": 1.0}, "sequences": 2,
                     "frames": 10, "retarget_s_per_sequence": 1.0, "grasps": {"refine": g}}},
         "data/real", 0, 2,
     )  # fmt: skip
-    assert "| shadow | refine | 4 | 4 | 1 | 2 | 1 | 100 / 0 |" in text
+    assert "| shadow | refine | 4 | 4 | 1 | 2 | 1 | 100 / 0 | 1 | 0.10 / 0.80 |" in text

@@ -12,7 +12,7 @@ import pytest
 import trimesh
 
 from dexflow.errors import HandConfigError
-from dexflow.grasp_protocol import Perturbation, damped_step, perturbations
+from dexflow.grasp_protocol import Perturbation, damped_step, imbalance, perturbations
 from dexflow.hands import load_hand
 from dexflow.mujoco_world import MujocoGraspWorld
 from dexflow.objects.convex import write_convex_obj
@@ -22,8 +22,9 @@ from .test_hands import _gripper
 from .test_simulate import _closed  # the same closing, through this world's gap
 
 BOX = (0.024, 0.024, 0.03)  # sits on the gripper's palm, between its three fingers
-KEYS = ("parts_penetration_m", "pushed_links", "touching", "held", "displacement_m",
-        "rotation_deg", "tested", "contact", "bench")  # fmt: skip
+KEYS = ("parts_penetration_m", "pushed_links", "imbalance", "closing_displacement_m",
+        "closing_rotation_deg", "touching", "held", "displacement_m", "rotation_deg", "tested",
+        "contact", "bench")  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -155,6 +156,34 @@ def test_wrapped_hand_holds_the_box_in_all_six_directions(scene):
     assert result["parts_penetration_m"] < 1e-3
     assert np.all(result["displacement_m"] < 0.01) and np.all(result["rotation_deg"] < 15)
     assert isinstance(result["pushed_links"], int) and isinstance(result["bench"], bool)
+    # the three fingers press from three sides: their pushes (and the palm's) nearly cancel,
+    # and the box hardly moves while they close
+    assert result["imbalance"] < 0.4
+    assert result["closing_displacement_m"] < 0.003 and result["closing_rotation_deg"] < 5
+
+
+def test_imbalance_is_zero_for_opposed_pushes_and_one_for_one_sided_ones():
+    assert imbalance([[1, 0, 0], [-2, 0, 0]]) == pytest.approx(0.0)  # lengths do not matter
+    angles = np.radians([0, 120, 240])
+    assert imbalance(np.stack([np.cos(angles), np.sin(angles), 0 * angles], 1)) < 1e-12
+    assert imbalance([[0, 0, 1], [0, 0, 3]]) == pytest.approx(1.0)
+    assert imbalance([[1, 0, 0], [0, 1, 0]]) == pytest.approx(np.sqrt(0.5))
+    assert np.isnan(imbalance(np.zeros((0, 3))))
+
+
+def test_one_sided_push_shoves_the_box_while_the_fingers_close(scene):
+    """One finger presses the box from the side and the others are open: nothing opposes the
+    squeeze, so the box is moved before any push, and the pushes are one-sided."""
+    hand, world, pose, _, closed = scene
+    q = closed.copy()
+    for f in (1, 2):
+        q[hand.joint_names.index(f"f{f}_j0")] = 1.2  # turned well away from the box
+    result = world.test_frame(q, pose)
+    wrapped = world.test_frame(closed, pose)
+    assert result["touching"].tolist() == [True, False, False]
+    assert result["imbalance"] > 0.5 > wrapped["imbalance"]  # the finger and the palm below
+    assert result["closing_displacement_m"] > 0.005 > 0.001 > wrapped["closing_displacement_m"]
+    assert not result["bench"]
 
 
 def test_targets_close_along_the_grasp(scene):

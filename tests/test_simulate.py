@@ -81,6 +81,9 @@ def test_wrapped_hand_holds_the_box_in_all_six_directions(scene):
     assert result["touching"].tolist() == [True, True, True]
     assert result["parts_penetration_m"] < 1e-3
     assert np.all(result["displacement_m"] < 0.01) and np.all(result["rotation_deg"] < 15)
+    assert result["imbalance"] < 0.4  # three fingers around the box: the pushes nearly cancel
+    # this test holds the object still while the fingers close: no closing motion to report
+    assert np.isnan(result["closing_displacement_m"]) and np.isnan(result["closing_rotation_deg"])
 
 
 def test_opened_hand_drops_the_box(scene):
@@ -335,3 +338,35 @@ def test_penetrating_start_does_not_count_in_mujoco_either(scene, box_sdf):
     assert arrays["penetration_m"][0] > params.penetration_tol_m
     assert result["engines"]["mujoco"]["success_frame"] == 1  # not frame 0
     assert result["success_bench"] and result["success_contact"]
+
+
+def test_summary_counts_frames_lost_while_closing_and_the_mean_imbalance():
+    """Per engine: frames whose object passed either DexGraspBench threshold while the fingers
+    closed (None where the engine holds the object then: NaN rows), and the mean imbalance of
+    the frames with a contact, over all sequences' frames."""
+    from dexflow.simulate import _engine_result, _engine_summary
+
+    p = SimulateParams()
+
+    def arrays(closing_m, closing_deg, balance):
+        n = len(balance)
+        flags = {f"mujoco.{k}": np.zeros(n, bool) for k in ("contact", "bench")}
+        flags |= {f"mujoco.{k}_single": np.zeros(n, bool) for k in ("contact", "bench")}
+        return flags | {
+            "mujoco.parts_penetration_m": np.zeros(n),
+            "mujoco.closing_displacement_m": np.array(closing_m, dtype=float),
+            "mujoco.closing_rotation_deg": np.array(closing_deg, dtype=float),
+            "mujoco.imbalance": np.array(balance, dtype=float),
+        }
+
+    hit = dict.fromkeys(("contact", "bench", "contact_raw", "bench_raw"))
+    first = _engine_result(
+        arrays([0.001, 0.06, 0.0], [1.0, 0.0, 20.0], [0.2, 1.0, np.nan]), "mujoco", hit, p
+    )
+    second = _engine_result(arrays([0.01], [2.0], [0.3]), "mujoco", hit, p)
+    assert (first["lost_closing_frames"], second["lost_closing_frames"]) == (2, 0)
+    summary = _engine_summary([first, second], evaluated=4)
+    assert summary["lost_closing"] == 0.5 and summary["imbalance_mean"] == pytest.approx(0.5)
+    held = _engine_result(arrays([np.nan], [np.nan], [0.4]), "mujoco", hit, p)  # pybullet-like
+    assert held["lost_closing_frames"] is None
+    assert _engine_summary([first, held], evaluated=4)["lost_closing"] is None

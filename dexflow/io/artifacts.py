@@ -280,9 +280,9 @@ class ObjectAssets:
 # The per-tested-frame arrays of a simulation result shared by its engines (see SimulationResult)
 SIMULATION_KEYS = ("frame", "penetration_m")
 # ... and those of each engine, stored as ``<engine>.<key>``.
-ENGINE_KEYS = ("parts_penetration_m", "pushed_links", "touching", "held", "displacement_m",
-               "rotation_deg", "tested", "contact", "bench", "contact_single",
-               "bench_single")  # fmt: skip
+ENGINE_KEYS = ("parts_penetration_m", "pushed_links", "imbalance", "closing_displacement_m",
+               "closing_rotation_deg", "touching", "held", "displacement_m", "rotation_deg",
+               "tested", "contact", "bench", "contact_single", "bench_single")  # fmt: skip
 
 
 @dataclass
@@ -292,7 +292,10 @@ class SimulationResult:
     Attributes:
         rows: ``frame (N,)``, ``penetration_m (N,)`` (mesh depth, the penetration rule's), and
             per engine ``<engine>.<key>``: ``parts_penetration_m (N,)`` (against the convex
-            parts), ``pushed_links (N,)``, ``touching (N, F)``,
+            parts), ``pushed_links (N,)``, ``imbalance (N,)`` (how one-sided the pushes are,
+            :func:`dexflow.grasp_protocol.imbalance`), ``closing_displacement_m (N,)`` and
+            ``closing_rotation_deg (N,)`` (the object's motion while the fingers closed, before
+            any push; NaN where the engine's test holds it then), ``touching (N, F)``,
             ``held``/``displacement_m``/``rotation_deg``/``tested`` ``(N, 6)`` per push
             direction of the nominal trial, ``contact (N,)`` and ``bench (N,)`` (robust: the
             nominal and every perturbed trial) and ``contact_single``/``bench_single`` (the
