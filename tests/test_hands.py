@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import textwrap
 import xml.etree.ElementTree as ET
 
@@ -9,6 +10,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+import trimesh
 from scipy.spatial.transform import Rotation
 
 from dexflow.cli import main as cli_main
@@ -17,7 +19,7 @@ from dexflow.hands import load_hand
 from dexflow.hands.check import check_hand
 from dexflow.hands.export import export_urdf
 from dexflow.hands.model import _origin
-from dexflow.hands.robot import base_transform
+from dexflow.hands.robot import base_transform, sharp_edge_points
 
 
 @pytest.fixture(scope="module")
@@ -324,3 +326,35 @@ def test_hand_check_reports_uncovered_joints_and_builtins_pass(tmp_path):
     for name in ("shadow", "allegro"):
         _, report = check_hand(name)
         assert report.endswith("ok")
+
+
+def test_sharp_edge_points_keep_the_corners_and_follow_the_edges():
+    half = np.array([0.01, 0.015, 0.02])
+    points, normals = sharp_edge_points(trimesh.creation.box(2 * half), spacing=0.005, limit=500)
+    on_edge = (np.isclose(np.abs(points), half, atol=1e-12).sum(1)) >= 2
+    assert on_edge.all()  # every point on one of the 12 edges
+    corners = np.array(list(itertools.product(*[(-h, h) for h in half])))
+    assert np.linalg.norm(points[None] - corners[:, None], axis=-1).min(1).max() < 1e-12
+    assert 60 <= len(points) <= 100  # 36 cm of edges, about 5 mm apart
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0)
+    # the normal of an edge point bisects its two faces: outward, 45° from each
+    assert np.all(np.einsum("ij,ij->i", normals, np.sign(points)) > 1.0)
+    sparse = sharp_edge_points(trimesh.creation.box(2 * half), 0.005, limit=20)[0]
+    assert 8 <= len(sparse) <= 20  # at most the limit, the corners still in
+    assert len(sharp_edge_points(trimesh.creation.capsule(0.03, 0.01), 0.005, 100)[0]) == 0
+
+
+def test_surface_samples_hold_the_corners_where_a_tilted_box_goes_deepest(tmp_path):
+    """A box tilted over a surface first reaches it with a corner: the hand's surface samples
+    (what penetration is measured on) include every corner of its boxes."""
+    hand = load_hand(_gripper(tmp_path))
+    q = hand.zero()
+    q[0, 3], q[0, 4] = 0.3, 0.2  # the base turned about x and y
+    points, normals = hand.surface(q)
+    base = points[0][np.array(hand.surface_point_links) == "base"].numpy()
+    frame = hand.link_transforms(q, ["base"])[0, 0].numpy()
+    box = np.array(list(itertools.product((-0.03, 0.03), (-0.03, 0.03), (-0.01, 0.01))))
+    corners = box @ frame[:3, :3].T + frame[:3, 3]
+    assert np.linalg.norm(base[None] - corners[:, None], axis=-1).min(1).max() < 1e-9
+    assert base[:, 2].min() == pytest.approx(corners[:, 2].min(), abs=1e-9)
+    np.testing.assert_allclose(torch.linalg.vector_norm(normals[0], dim=-1).numpy(), 1.0, rtol=1e-6)

@@ -256,12 +256,13 @@ def test_release_rounds_bound_the_deepest_frame(allegro):
 
 def test_release_moves_the_palm_before_the_fingertips(allegro):
     """With release_tip_weight > 1 the fingertips stay nearer their place than the rest of the
-    hand while the palm backs out; at 1 they move about as much as the other keypoints."""
+    hand while the palm backs out; at 1 they move further (0.73 mm against 0.50 at 10, with
+    the palm's box corners among the surface points; 0.97 against 0.48 without)."""
     depth, tips, rest = _release_palm(allegro, 0.01, release_tip_weight=10.0)
     assert depth.max() < 0.0005
     assert tips < 0.4 * rest
     _, tips_equal, _ = _release_palm(allegro, 0.01, release_tip_weight=1.0)
-    assert tips_equal > 2 * tips
+    assert tips_equal > 1.3 * tips
 
 
 def _banded_to_dense(lower: np.ndarray) -> np.ndarray:

@@ -21,7 +21,7 @@ from dexflow.hands.model import KinematicModel, load_kinematic_model, resolve_mo
 from dexflow.hands.spec import HandSpec, load_hand_spec
 from dexflow.human.keypoints import FINGERTIPS
 
-__all__ = ["BASE_JOINT_NAMES", "RobotHand", "cached_hand", "load_hand"]
+__all__ = ["BASE_JOINT_NAMES", "RobotHand", "cached_hand", "load_hand", "sharp_edge_points"]
 
 BASE_JOINT_NAMES = (
     "dummy_x_translation",
@@ -33,6 +33,54 @@ BASE_JOINT_NAMES = (
 )
 _BASE_TRANSLATION_LIMIT_M = 10.0
 _BASE_ROTATION_LIMIT = 2 * np.pi
+
+
+_SHARP_RAD = np.radians(60.0)  # edges whose faces turn by more than this are sampled along
+
+
+def sharp_edge_points(
+    mesh: trimesh.Trimesh, spacing: float, limit: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points along the sharp edges of ``mesh`` (its corners first), about ``spacing`` apart.
+
+    Points sampled evenly over the faces miss a box's edges and corners, which are where a box
+    pressed into a convex object goes deepest: on the Allegro hand (19 boxes) penetration
+    measured from face samples alone read 0.1 mm lower on average than from four times as many
+    points, and a dense sampling found a box edge 3 mm deeper than its 78 samples. So
+    every edge whose two faces turn by more than 60° (a box's 12, a cylinder's rims; none on a
+    sphere or capsule) is sampled too, with the vertices where three or more such edges meet
+    (corners) always kept. At most ``limit`` points: longer sharp edges are sampled more
+    sparsely.
+
+    Returns:
+        ``points (P, 3)`` and unit ``normals (P, 3)`` (the mean of the two faces' normals; at a
+        corner, the mesh's vertex normal).
+    """
+    sharp = mesh.face_adjacency_angles > _SHARP_RAD
+    if not sharp.any() or limit < 1:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    edges = mesh.face_adjacency_edges[sharp]  # (E, 2) vertex indices
+    pair = mesh.face_normals[mesh.face_adjacency[sharp]]  # (E, 2, 3)
+    edge_normal = pair.sum(1)
+    edge_normal /= np.linalg.norm(edge_normal, axis=1, keepdims=True)
+    start, end = mesh.vertices[edges[:, 0]], mesh.vertices[edges[:, 1]]
+    lengths = np.linalg.norm(end - start, axis=1)
+    spacing = max(spacing, float(lengths.sum()) / limit)
+    # dense points along every edge, then one per cell of a grid of that spacing
+    steps = np.maximum(1, np.ceil(4 * lengths / spacing)).astype(int)
+    which = np.repeat(np.arange(len(edges)), steps + 1)
+    t = np.concatenate([np.linspace(0.0, 1.0, n + 1) for n in steps])
+    dense = start[which] + t[:, None] * (end - start)[which]
+    normals = edge_normal[which]
+    corner = np.bincount(edges.reshape(-1), minlength=len(mesh.vertices)) >= 3
+    vertex = np.where(t == 0.0, edges[which, 0], np.where(t == 1.0, edges[which, 1], -1))
+    at_corner = np.flatnonzero((vertex >= 0) & corner[vertex])
+    normals[at_corner] = mesh.vertex_normals[vertex[at_corner]]  # into the corner's octant
+    order = np.concatenate([at_corner, np.setdiff1d(np.arange(len(dense)), at_corner)])
+    cells = np.floor(dense[order] / spacing).astype(np.int64)
+    _, first = np.unique(cells, axis=0, return_index=True)
+    keep = order[np.sort(first)][:limit]
+    return dense[keep], normals[keep]
 
 
 def _names_or_error(hand: str, kind: str, names, known) -> None:
@@ -152,20 +200,28 @@ class RobotHand:
         counts = np.maximum(4, np.round(areas / areas.sum() * self.spec.surface_points)).astype(int)
         points, normals, link_of = [], [], []
         links = list(dict.fromkeys(g.link for g in geoms))
-        for i, (geom, count) in enumerate(zip(geoms, counts, strict=True)):
-            pts, faces = trimesh.sample.sample_surface_even(geom.mesh, int(count), seed=i)
+        for i, (geom, share) in enumerate(zip(geoms, counts, strict=True)):
+            # a geometry's share of the points: along its sharp edges (at most half), the
+            # rest spread evenly over its faces
+            edge_pts, edge_normals = sharp_edge_points(
+                geom.mesh, spacing=float(np.sqrt(geom.mesh.area / share)), limit=int(share) // 2
+            )
+            count = max(4, int(share) - len(edge_pts))
+            pts, faces = trimesh.sample.sample_surface_even(geom.mesh, count, seed=i)
             if len(pts) < count:  # even sampling may return fewer; top up uniformly
                 extra, extra_faces = trimesh.sample.sample_surface(
-                    geom.mesh, int(count) - len(pts), seed=i
+                    geom.mesh, count - len(pts), seed=i
                 )
                 pts, faces = np.vstack([pts, extra]), np.concatenate([faces, extra_faces])
+            pts = np.vstack([edge_pts, pts])
+            nrm = np.vstack([edge_normals, geom.mesh.face_normals[faces]])
             # Drop points buried inside another shape of the same link: not on its surface.
             buried = np.zeros(len(pts), dtype=bool)
             for other in geoms:
                 if other is not geom and other.link == geom.link and other.mesh.is_watertight:
                     buried |= other.mesh.contains(pts)
             points.append(pts[~buried])
-            normals.append(geom.mesh.face_normals[faces[~buried]])
+            normals.append(nrm[~buried])
             link_of.append(np.full(int((~buried).sum()), links.index(geom.link)))
         self.surface_links = links
         self._surface_local = torch.as_tensor(
