@@ -901,6 +901,7 @@ def grasp_breakdown(out: StageDir, params: SimulateParams | None = None) -> dict
     """
     import json
 
+    from dexflow.grasp_protocol import lost_while_closing
     from dexflow.io.artifacts import read_simulation
 
     p = params or SimulateParams()
@@ -917,8 +918,9 @@ def grasp_breakdown(out: StageDir, params: SimulateParams | None = None) -> dict
         opposed = np.zeros(len(held), dtype=bool)
         if "thumb" in result.fingers:
             opposed = touching[:, result.fingers.index("thumb")] & (touching.sum(1) >= 2)
-        moved = rows[f"{engine}.closing_displacement_m"] >= p.max_displacement_m
-        closing = moved | (rows[f"{engine}.closing_rotation_deg"] >= p.max_rotation_deg)
+        closing = lost_while_closing(
+            rows[f"{engine}.closing_displacement_m"], rows[f"{engine}.closing_rotation_deg"], p
+        )
         counts["tested"] += len(held)
         counts["held"] += int(held.sum())
         counts["opposed"] += int(opposed.sum())

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dexflow.params import PerturbationParams
+from dexflow.params import PerturbationParams, SimulateParams
 
 if TYPE_CHECKING:
     from dexflow.hands.robot import RobotHand
@@ -28,6 +28,7 @@ __all__ = [
     "Perturbation",
     "damped_step",
     "imbalance",
+    "lost_while_closing",
     "perturbations",
     "pushed_configuration",
 ]
@@ -69,6 +70,18 @@ def imbalance(normals: np.ndarray) -> float:
         return float("nan")
     unit = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     return float(np.linalg.norm(unit.sum(0)) / len(unit))
+
+
+def lost_while_closing(
+    displacement_m: np.ndarray, rotation_deg: np.ndarray, params: SimulateParams
+) -> np.ndarray:
+    """Whether the object had already moved or turned past the DexGraspBench thresholds
+    (``max_displacement_m``, ``max_rotation_deg``) while the fingers closed, before any push:
+    from a frame's ``closing_displacement_m`` and ``closing_rotation_deg`` (NaN, an engine that
+    holds the object then: False)."""
+    return (np.asarray(displacement_m) >= params.max_displacement_m) | (
+        np.asarray(rotation_deg) >= params.max_rotation_deg
+    )
 
 
 def pushed_configuration(

@@ -93,6 +93,7 @@ from dexflow.grasp_protocol import (
     Perturbation,
     damped_step,
     imbalance,
+    lost_while_closing,
     perturbations,
     pushed_configuration,
 )
@@ -659,9 +660,7 @@ def _engine_result(arrays: dict, engine: str, hit: dict, p: SimulateParams) -> d
         flipped |= arrays[f"{engine}.{key}_single"] != arrays[f"{engine}.{key}"]
     raw = p.test_over_tolerance  # else the frames over the tolerance were not tested
     closing = arrays[f"{engine}.closing_displacement_m"]
-    lost = (closing >= p.max_displacement_m) | (
-        arrays[f"{engine}.closing_rotation_deg"] >= p.max_rotation_deg
-    )
+    lost = lost_while_closing(closing, arrays[f"{engine}.closing_rotation_deg"], p)
     balance = arrays[f"{engine}.imbalance"]
     balance = balance[np.isfinite(balance)]
     return {
