@@ -134,10 +134,10 @@ def test_grid_signs_equal_every_node_evaluated(shape):
     winding = winding_number(mesh, nodes).reshape(grid.values.shape)
     exact = np.abs(signed_distance(mesh, nodes)).reshape(grid.values.shape)
     np.testing.assert_allclose(np.abs(grid.values), exact, atol=1e-7)
-    # not on the surface, nor where the winding number is within libigl's run-to-run noise of
-    # 0.5 (the disk spanning a hole: with 1e-6 this failed in 2 of 3 full-suite runs on the
-    # holed sphere, never alone); a wrong deduction from the coarse grid would flip nodes far
-    # from 0.5
+    # not on the surface, nor within 1e-3 of winding 0.5: with 1e-6 this failed in 2 of 3
+    # full-suite runs on the holed sphere and never alone, presumably libigl's run-to-run noise
+    # near 0.5 (on the disk spanning the hole; the failing nodes were not captured); a wrong
+    # deduction from the coarse grid flips nodes far from 0.5
     decided = (np.abs(winding - 0.5) > 1e-3) & (exact > 1e-9)
     assert decided.mean() > 0.95
     assert np.array_equal((grid.values < 0)[decided], (winding > 0.5)[decided])
