@@ -951,6 +951,8 @@ def _median(values: list[float]) -> float:
 
 def _grasp_lines(results: dict[str, dict]) -> list[str]:
     """The table of :func:`grasp_breakdown` per hand and method."""
+    from dexflow.report import _cell
+
     rows = [(h, m, g) for h, r in results.items() for m, g in r.get("grasps", {}).items()]
     if not rows:
         return []
@@ -972,14 +974,9 @@ def _grasp_lines(results: dict[str, dict]) -> list[str]:
         lines.append(
             f"| {hand} | {method} | {g['tested']} | {g['skipped']} | {g['held']} | {opposed} "
             f"| {g['displacement_mm']:.0f} / {g['rotation_deg']:.0f} | {g['lost_closing']} "
-            f"| {_number(g['imbalance_held'])} / {_number(g['imbalance_failed'])} |"
+            f"| {_cell(g['imbalance_held'])} / {_cell(g['imbalance_failed'])} |"
         )
     return lines
-
-
-def _number(value: float) -> str:
-    """``value`` with two decimals, or — when it is NaN."""
-    return "—" if not np.isfinite(value) else f"{value:.2f}"
 
 
 def _motion_lines(results: dict[str, dict]) -> list[str]:
