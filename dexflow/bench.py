@@ -897,7 +897,9 @@ def grasp_breakdown(out: StageDir, params: SimulateParams | None = None) -> dict
     ``max_rotation_deg``) while the fingers closed, before any push (0 for an engine that
     holds the object then); the median ``imbalance`` of the pushes
     (:func:`dexflow.grasp_protocol.imbalance`: 0 opposed, 1 one-sided) of the held frames
-    (``imbalance_held``) and of the failed ones (``imbalance_failed``).
+    (``imbalance_held``) and of the failed ones (``imbalance_failed``), and likewise that of
+    stage contact's contacts at those frames (``contact_imbalance_held``,
+    ``contact_imbalance_failed``: :func:`dexflow.grasp_protocol.contact_imbalance`).
     """
     import json
 
@@ -909,6 +911,7 @@ def grasp_breakdown(out: StageDir, params: SimulateParams | None = None) -> dict
     counts = dict.fromkeys(("tested", "held", "opposed", "opposed_held", "lost_closing"), 0)
     displacement, rotation, thumb = [], [], True
     balance: dict[bool, list[float]] = {True: [], False: []}
+    target: dict[bool, list[float]] = {True: [], False: []}
     for path in out.sequence_files():
         result = read_simulation(path)
         rows, engine = result.rows, result.engines[0]
@@ -930,6 +933,7 @@ def grasp_breakdown(out: StageDir, params: SimulateParams | None = None) -> dict
         rotation += list(rows[f"{engine}.rotation_deg"][~held, 0])
         for kept in (True, False):
             balance[kept] += list(rows[f"{engine}.imbalance"][held == kept])
+            target[kept] += list(rows["contact_imbalance"][held == kept])
     failed = np.array(displacement, dtype=float)
     return {
         **counts,
@@ -939,6 +943,8 @@ def grasp_breakdown(out: StageDir, params: SimulateParams | None = None) -> dict
         "rotation_deg": float(np.nanmedian(rotation)) if rotation else float("nan"),
         "imbalance_held": _median(balance[True]),
         "imbalance_failed": _median(balance[False]),
+        "contact_imbalance_held": _median(target[True]),
+        "contact_imbalance_failed": _median(target[False]),
     }
 
 
@@ -961,20 +967,23 @@ def _grasp_lines(results: dict[str, dict]) -> list[str]:
         "first engine; *opposed*: the thumb and another finger touch the object at the start; "
         "*lost while closing*: the object moved or turned past the criterion's thresholds "
         "while the fingers closed, before any push; *imbalance*: how one-sided the pushes into "
-        "the object are, 0 when they cancel, 1 when all press the same way, "
-        "`dexflow/grasp_protocol.py`):",
+        "the object are, 0 when they cancel, 1 when all press the same way; *contact "
+        "imbalance*: the same of the contacts stage contact found at the frame, those the grasp "
+        "aims for, `dexflow/grasp_protocol.py`):",
         "",
         "| hand | method | frames tested | skipped (over the penetration tolerance) | held "
         "| opposed | opposed and held | failed: median displacement mm / rotation ° "
-        "under the first push | failed: lost while closing | median imbalance held / failed |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "under the first push | failed: lost while closing | median imbalance held / failed "
+        "| median contact imbalance held / failed |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for hand, method, g in rows:
         opposed = f"{g['opposed']} | {g['opposed_held']}" if g["thumb"] else "— | —"
         lines.append(
             f"| {hand} | {method} | {g['tested']} | {g['skipped']} | {g['held']} | {opposed} "
             f"| {g['displacement_mm']:.0f} / {g['rotation_deg']:.0f} | {g['lost_closing']} "
-            f"| {_cell(g['imbalance_held'])} / {_cell(g['imbalance_failed'])} |"
+            f"| {_cell(g['imbalance_held'])} / {_cell(g['imbalance_failed'])} "
+            f"| {_cell(g['contact_imbalance_held'])} / {_cell(g['contact_imbalance_failed'])} |"
         )
     return lines
 

@@ -26,6 +26,7 @@ __all__ = [
     "DLS_DAMPING",
     "TOUCH_M",
     "Perturbation",
+    "contact_imbalance",
     "damped_step",
     "imbalance",
     "lost_while_closing",
@@ -70,6 +71,42 @@ def imbalance(normals: np.ndarray) -> float:
         return float("nan")
     unit = normals / np.linalg.norm(normals, axis=1, keepdims=True)
     return float(np.linalg.norm(unit.sum(0)) / len(unit))
+
+
+def contact_imbalance(contact_map: dict[str, np.ndarray], frames: np.ndarray) -> np.ndarray:
+    """How one-sided the contacts that stage contact found are, at each of ``frames``.
+
+    The contacts are those the grasp is retargeted and refined towards (stage contact's final
+    states on the retargeted hand, which follows the human's keypoints: where the human
+    touched). Per frame, each finger in contact presses along the mean of the inward object
+    normals (``-map_object_normal``) of its mapped points, and the frame's value is
+    :func:`imbalance` of those directions, one per finger: 0 when they cancel, 1 when they all
+    press the same way (or only one finger touches), NaN without a finger in contact. Set next
+    to the imbalance of the robot's pushes, it tells a grasp the retargeting made one-sided
+    from a frame at which the human's own contacts could not enclose the object (an approach,
+    a touch, a palm or table carrying it).
+
+    Args:
+        contact_map: Stage contact's ``map_frame``, ``map_finger`` and ``map_object_normal``
+            (object frame: the value is invariant to the object's pose).
+        frames: (N,) frame indices.
+
+    Returns:
+        (N,) the imbalance per frame.
+    """
+    frame = np.asarray(contact_map["map_frame"], dtype=int)
+    finger = np.asarray(contact_map["map_finger"], dtype=int)
+    inward = -np.asarray(contact_map["map_object_normal"], dtype=float).reshape(-1, 3)
+    out = np.full(len(frames), np.nan)
+    for i, t in enumerate(np.asarray(frames, dtype=int)):
+        at = frame == t
+        if not at.any():
+            continue
+        fingers = np.unique(finger[at])
+        sums = np.stack([inward[at & (finger == f)].sum(0) for f in fingers])
+        sums = sums[np.linalg.norm(sums, axis=1) > 0]  # a finger whose normals cancel: no push
+        out[i] = imbalance(sums)
+    return out
 
 
 def lost_while_closing(

@@ -174,7 +174,10 @@ def write_summary(
         "fail: *lost while the fingers closed* counts the tested frames whose object moved or "
         "turned past the DexGraspBench thresholds before any push (MuJoCo; pybullet holds it "
         "then), and *imbalance* is how one-sided the pushes into the object are, 0 when they "
-        "cancel, 1 when all press the same way (`dexflow/grasp_protocol.py`).",
+        "cancel, 1 when all press the same way; *contact imbalance* is the same measure of the "
+        "contacts stage contact found at those frames (the fingers the grasp was retargeted and "
+        "refined towards, where the human touched): near 1, the human's own contacts could not "
+        "enclose the object there, and no retargeting of them can (`dexflow/grasp_protocol.py`).",
         "",
         *_replay_section(stage, replay_dirs or {}, figures_dir, rel),
         "## Motion quality (paper Table III layout)",
@@ -445,13 +448,13 @@ def _simulation_table(stage: dict) -> list[str]:
         "| method | SSR % | SSR without the rule % | SSR DexGraspBench % | DexGraspBench without "
         "the rule % | frames tested | starting penetration mm (mean) | frames over the tolerance % "
         "| on the convex parts: mm (mean) | over the tolerance % | lost while the fingers "
-        "closed % | imbalance (mean) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "closed % | imbalance (mean) | contact imbalance (mean) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for method, label in METHOD_LABELS.items():
         sim = stage.get(f"simulate_{method}")
         if not sim:
-            lines.append(f"| {label} |" + " — |" * 11)
+            lines.append(f"| {label} |" + " — |" * 12)
             continue
         cells = [_cell(sim.get(k)) for k in ("ssr", "ssr_raw", "ssr_bench", "ssr_bench_raw")]
         cells += [str(sim.get("frames_evaluated", "—")), _cell(sim.get("penetration_mean_mm"))]
@@ -462,6 +465,7 @@ def _simulation_table(stage: dict) -> list[str]:
         lost = sim.get("lost_closing")
         cells.append("—" if lost is None else _cell(100 * lost, 0))
         cells.append(_cell(sim.get("imbalance_mean")))
+        cells.append(_cell(sim.get("contact_imbalance_mean")))
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines
 

@@ -91,6 +91,7 @@ from dexflow.grasp_protocol import (
     DIRECTIONS,
     TOUCH_M,
     Perturbation,
+    contact_imbalance,
     damped_step,
     imbalance,
     lost_while_closing,
@@ -561,6 +562,7 @@ def simulate_sequence(
     poses: np.ndarray,
     first_contact: int,
     sdf: SignedDistanceGrid,
+    contact_map: Mapping[str, np.ndarray] | None = None,
 ) -> tuple[dict[str, np.ndarray], dict]:
     """Evaluate the frames of one trajectory from its first contact on, in every engine.
 
@@ -579,9 +581,13 @@ def simulate_sequence(
         first_contact: First frame with a finger in contact (-1: none, nothing is evaluated).
         sdf: The object mesh's signed distance grid (stage scale_align's ``sdf.npz``): the
             starting penetration of the penetration rule is measured on it.
+        contact_map: Stage contact's map of this trajectory (``ContactResult.contact_map``):
+            each evaluated frame's ``contact_imbalance`` comes from it
+            (:func:`dexflow.grasp_protocol.contact_imbalance`; NaN without a map).
 
     Returns:
-        Per evaluated frame arrays (``frame``, ``penetration_m`` on the mesh, and per engine
+        Per evaluated frame arrays (``frame``, ``penetration_m`` on the mesh,
+        ``contact_imbalance``, and per engine
         ``<engine>.<key>`` for :data:`~dexflow.io.artifacts.ENGINE_KEYS`) and the sequence's
         result: the first engine's successes at the top level, every engine's under
         ``engines``, and with two engines the frames on which they agree (``agree_hold``,
@@ -598,11 +604,15 @@ def simulate_sequence(
     depth = np.zeros(len(q))
     if frames:  # in chunks of frames: memory bounded on long captures
         depth[frames] = hand_object_depths(hand, q[frames], poses[frames], sdf)[0]
+    balance = dict.fromkeys(frames, float("nan"))
+    if contact_map is not None and frames:
+        balance = dict(zip(frames, contact_imbalance(contact_map, np.array(frames)), strict=True))
     rows: list[dict] = []
     found = {e: dict.fromkeys(("contact", "bench", "contact_raw", "bench_raw")) for e in engines}
     considered = []  # frames reached before the early stop, tested or not
     for t in frames:
         row: dict = {"frame": t, "penetration_m": float(depth[t])}
+        row["contact_imbalance"] = float(balance[t])
         within = row["penetration_m"] <= p.penetration_tol_m
         considered.append(t)
         if not (within or p.test_over_tolerance):
@@ -638,6 +648,8 @@ def simulate_sequence(
         "skipped": len(considered) - len(rows),
         "penetration_mean_mm": float(pen.mean() * 1000) if len(pen) else 0.0,
         "over_tolerance": float((pen > p.penetration_tol_m).mean()) if len(pen) else 0.0,
+        "contact_imbalance_sum": float(np.nansum(arrays["contact_imbalance"])),
+        "contact_imbalance_frames": int(np.isfinite(arrays["contact_imbalance"]).sum()),
         "engines": {e: _engine_result(arrays, e, found[e], p) for e in engines},
     }
     result |= result["engines"][engines[0]]
@@ -721,7 +733,9 @@ def run_simulate(params: PipelineParams, layout: Layout, label: str) -> dict:
         for world in worlds.values():
             world.set_object(assets.paths.convex)
         start = time.perf_counter()
-        rows, result = simulate_sequence(worlds, q, seq.obj_pose, found.first_contact, assets.sdf())
+        rows, result = simulate_sequence(
+            worlds, q, seq.obj_pose, found.first_contact, assets.sdf(), found.contact_map
+        )
         result["seconds"] = time.perf_counter() - start
         fingers = list(hand.spec.fingers)
         write_simulation(out.sequence(path), SimulationResult(rows, fingers, list(sp.engines)))
@@ -741,6 +755,10 @@ def run_simulate(params: PipelineParams, layout: Layout, label: str) -> dict:
         "frames_skipped": int(sum(s["skipped"] for s in ok)),
         "penetration_mean_mm": tally.mean("penetration_mean_mm"),
         "over_tolerance": tally.mean("over_tolerance", 0.0),
+        "contact_imbalance_mean": _ratio(
+            sum(s["contact_imbalance_sum"] for s in ok),
+            sum(s["contact_imbalance_frames"] for s in ok),
+        ),
     }
     for i, engine in enumerate(sp.engines):
         stats = _engine_summary([s["engines"][engine] for s in ok], evaluated)
@@ -785,10 +803,13 @@ def _engine_summary(entries: list[dict], evaluated: int) -> dict:
         "parts_over_tolerance": mean("parts_over_tolerance"),
         "flipped": flipped / evaluated if evaluated else 0.0,
         "lost_closing": (None if None in lost else (sum(lost) / evaluated if evaluated else 0.0)),
-        "imbalance_mean": (
-            sum(e["imbalance_sum"] for e in entries) / balanced if balanced else float("nan")
-        ),
+        "imbalance_mean": _ratio(sum(e["imbalance_sum"] for e in entries), balanced),
     }
+
+
+def _ratio(total: float, count: int) -> float:
+    """``total / count``, NaN when ``count`` is 0 (a mean over no frames)."""
+    return total / count if count else float("nan")
 
 
 STAGE = StageSpec(

@@ -106,11 +106,19 @@ def test_table_says_where_refinement_moved_the_fingertips():
 
 
 def _simulated(
-    out: StageDir, name: str, touching, bench, displacement_m, closing_m=None, imbalance=None
+    out: StageDir,
+    name: str,
+    touching,
+    bench,
+    displacement_m,
+    closing_m=None,
+    imbalance=None,
+    contact_imbalance=None,
 ) -> None:
     """A simulate output of len(bench) tested frames (engine mujoco; thumb, index, middle)."""
     n = len(bench)
     rows = {"frame": np.arange(n), "penetration_m": np.zeros(n)}
+    rows["contact_imbalance"] = np.array(contact_imbalance or [np.nan] * n, dtype=float)
     rows |= {f"mujoco.{k}": np.zeros(n) for k in ENGINE_KEYS}
     rows["mujoco.closing_displacement_m"] = np.array(closing_m or [0.0] * n, dtype=float)
     rows["mujoco.imbalance"] = np.array(imbalance or [np.nan] * n, dtype=float)
@@ -130,8 +138,9 @@ def test_grasp_breakdown_counts_opposed_and_held_frames(tmp_path):
     the failed frames' median displacement under the first push, pooled over sequences."""
     out = StageDir(tmp_path / "simulate")
     _simulated(out, "a", [[1, 1, 0], [1, 0, 0], [0, 1, 1]], [True, False, False],
-               [0.001, 0.2, 0.1], [0.0, 0.06, 0.01], [0.1, 0.9, 0.7])  # fmt: skip
-    _simulated(out, "b", [[1, 0, 1]], [False], [0.05], [np.nan], [np.nan])
+               [0.001, 0.2, 0.1], [0.0, 0.06, 0.01], [0.1, 0.9, 0.7],
+              [0.3, 1.0, np.nan])  # fmt: skip
+    _simulated(out, "b", [[1, 0, 1]], [False], [0.05], [np.nan], [np.nan], [0.6])
     out.summary.write_text('{"frames_skipped": 4}')
     g = grasp_breakdown(out)
     assert (g["tested"], g["skipped"], g["held"], g["opposed"], g["opposed_held"]) == (
@@ -146,6 +155,7 @@ def test_grasp_breakdown_counts_opposed_and_held_frames(tmp_path):
     # holds the object while closing) counts as not lost; the medians skip NaN
     assert g["lost_closing"] == 1
     assert (g["imbalance_held"], g["imbalance_failed"]) == (0.1, 0.8)
+    assert (g["contact_imbalance_held"], g["contact_imbalance_failed"]) == (0.3, 0.8)
     text = _real_table(
         {"shadow": {"metrics": {}, "seconds": {"retarget@dexflow": 1.0}, "sequences": 2,
                     "frames": 10, "retarget_s_per_sequence": 1.0, "grasps": {"refine": g}}},

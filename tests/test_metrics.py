@@ -159,7 +159,8 @@ def _metrics_dir(root, methods=("baseline", "retarget", "refine")):
         sim = {"ssr": 10.0 * i, "ssr_raw": 40.0 + i, "ssr_bench": 0.0, "ssr_bench_raw": 5.0,
                "frames_evaluated": 100 + i, "penetration_mean_mm": 2.5, "over_tolerance": 0.25,
                "parts_penetration_mean_mm": 4.5, "parts_over_tolerance": 0.75,
-               "lost_closing": 0.5 if m == "refine" else None, "imbalance_mean": 0.625}  # fmt: skip
+               "lost_closing": 0.5 if m == "refine" else None, "imbalance_mean": 0.625,
+               "contact_imbalance_mean": 0.875}  # fmt: skip
         (metrics / f"simulate_{m}.json").write_text(json.dumps(sim))
     with open(root / "sequences.csv", "w", newline="") as f:
         writer = csv.writer(f)
@@ -190,12 +191,12 @@ def test_summary_tables_simulation_and_figures(tmp_path):
     assert "| DexFlow + refinement | 20.00 |" in grasp and "| *paper: DexFlow* | 40.32 |" in grasp
     sim = _section(text, "Simulation").splitlines()
     refine = next(r for r in sim if r.startswith("| DexFlow + refinement"))
-    assert refine.split("|")[1:13] == [" DexFlow + refinement ", " 10.00 ", " 41.00 ", " 0.00 ",
+    assert refine.split("|")[1:14] == [" DexFlow + refinement ", " 10.00 ", " 41.00 ", " 0.00 ",
                                        " 5.00 ", " 101 ", " 2.50 ", " 25 ", " 4.50 ", " 75 ",
-                                       " 50 ", " 0.62 "]  # fmt: skip
+                                       " 50 ", " 0.62 ", " 0.88 "]  # fmt: skip
     baseline = next(r for r in sim if r.startswith("| position baseline"))
     assert baseline.split("|")[11:13] == [" — ", " 0.62 "]  # None: an engine that holds it
-    assert next(r for r in sim if r.startswith("| DexFlow retargeting")).count("—") == 11
+    assert next(r for r in sim if r.startswith("| DexFlow retargeting")).count("—") == 12
     objects = _section(text, "Per object")
     assert objects.index("003_cracker_box") < objects.index("025_mug")
     for name in ("summary_methods.png", "summary_objects_pd.png", "summary_timeline.png"):

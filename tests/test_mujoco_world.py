@@ -12,7 +12,13 @@ import pytest
 import trimesh
 
 from dexflow.errors import HandConfigError
-from dexflow.grasp_protocol import Perturbation, damped_step, imbalance, perturbations
+from dexflow.grasp_protocol import (
+    Perturbation,
+    contact_imbalance,
+    damped_step,
+    imbalance,
+    perturbations,
+)
 from dexflow.hands import load_hand
 from dexflow.mujoco_world import MujocoGraspWorld
 from dexflow.objects.convex import write_convex_obj
@@ -169,6 +175,24 @@ def test_imbalance_is_zero_for_opposed_pushes_and_one_for_one_sided_ones():
     assert imbalance([[0, 0, 1], [0, 0, 3]]) == pytest.approx(1.0)
     assert imbalance([[1, 0, 0], [0, 1, 0]]) == pytest.approx(np.sqrt(0.5))
     assert np.isnan(imbalance(np.zeros((0, 3))))
+
+
+def test_contact_imbalance_takes_one_direction_per_finger_in_contact_at_each_frame():
+    """Frame 3: the thumb (three points, outward normals +x) against the index (one point, -x):
+    opposed, 0 whatever the point counts; frame 5: thumb and index on the same face, 1; frame 4
+    has no contact: NaN; the mapped normals are outward, the pushes inward."""
+    contact_map = {
+        "map_frame": np.array([3, 3, 3, 3, 5, 5]),
+        "map_finger": np.array([0, 0, 0, 1, 0, 1]),
+        "map_object_normal": np.array(
+            [[1, 0, 0], [1, 0.1, 0], [1, -0.1, 0], [-1, 0, 0], [0, 0, 1], [0, 0, 1]], dtype=float
+        ),
+    }
+    out = contact_imbalance(contact_map, np.array([3, 4, 5]))
+    assert out[0] == pytest.approx(0.0, abs=1e-12) and np.isnan(out[1])
+    assert out[2] == pytest.approx(1.0)
+    one_sided = dict(contact_map, map_finger=np.array([0, 0, 0, 0, 0, 1]))  # all four: thumb
+    assert contact_imbalance(one_sided, np.array([3]))[0] == pytest.approx(1.0)
 
 
 def test_one_sided_push_shoves_the_box_while_the_fingers_close(scene):

@@ -142,8 +142,15 @@ def test_penetrating_start_does_not_count_and_sequence_logic(scene, box_sdf):
     params = dataclasses.replace(p, stride=1)
     world_1 = GraspWorld(hand, hand_urdf(hand), params)
     world_1.set_object(folder / "box.obj")
-    arrays, result = simulate_sequence(world_1, q, poses, first_contact=2, sdf=box_sdf)
+    opposed = {  # stage contact's map: two fingers on opposite faces at frame 3 only
+        "map_frame": np.array([3, 3]),
+        "map_finger": np.array([0, 1]),
+        "map_object_normal": np.array([[1.0, 0, 0], [-1.0, 0, 0]]),
+    }
+    arrays, result = simulate_sequence(world_1, q, poses, 2, box_sdf, opposed)
     assert arrays["frame"].tolist() == [2, 3]  # early stop after the first counted success
+    assert np.isnan(arrays["contact_imbalance"][0]) and arrays["contact_imbalance"][1] == 0
+    assert (result["contact_imbalance_sum"], result["contact_imbalance_frames"]) == (0.0, 1)
     assert arrays["pybullet.touching"].shape == (2, 3) and arrays["pybullet.touching"][1].all()
     assert arrays["penetration_m"][0] > p.penetration_tol_m and arrays["pybullet.contact"][0]
     assert arrays["penetration_m"][0] == pytest.approx(0.004, abs=5e-4)  # on the mesh

@@ -278,7 +278,7 @@ class ObjectAssets:
 # ----------------------------------------------------------------------------- simulation
 
 # The per-tested-frame arrays of a simulation result shared by its engines (see SimulationResult)
-SIMULATION_KEYS = ("frame", "penetration_m")
+SIMULATION_KEYS = ("frame", "penetration_m", "contact_imbalance")
 # ... and those of each engine, stored as ``<engine>.<key>``.
 ENGINE_KEYS = ("parts_penetration_m", "pushed_links", "imbalance", "closing_displacement_m",
                "closing_rotation_deg", "touching", "held", "displacement_m", "rotation_deg",
@@ -290,7 +290,9 @@ class SimulationResult:
     """Stage simulate's rows for one sequence, one per tested frame (N rows).
 
     Attributes:
-        rows: ``frame (N,)``, ``penetration_m (N,)`` (mesh depth, the penetration rule's), and
+        rows: ``frame (N,)``, ``penetration_m (N,)`` (mesh depth, the penetration rule's),
+            ``contact_imbalance (N,)`` (how one-sided stage contact's contacts are at the frame,
+            :func:`dexflow.grasp_protocol.contact_imbalance`), and
             per engine ``<engine>.<key>``: ``parts_penetration_m (N,)`` (against the convex
             parts), ``pushed_links (N,)``, ``imbalance (N,)`` (how one-sided the pushes are,
             :func:`dexflow.grasp_protocol.imbalance`), ``closing_displacement_m (N,)`` and
