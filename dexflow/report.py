@@ -176,8 +176,8 @@ def write_summary(
         "then), and *imbalance* is how one-sided the pushes into the object are, 0 when they "
         "cancel, 1 when all press the same way; *contact imbalance* is the same measure of the "
         "contacts stage contact found at those frames (the fingers the grasp was retargeted and "
-        "refined towards, where the human touched): near 1, the human's own contacts could not "
-        "enclose the object there, and no retargeting of them can (`dexflow/grasp_protocol.py`).",
+        "refined towards, where the human touched): near 1, those contacts are one-sided and "
+        "copying them cannot enclose the object (`dexflow/grasp_protocol.py`).",
         "",
         *_replay_section(stage, replay_dirs or {}, figures_dir, rel),
         "## Motion quality (paper Table III layout)",

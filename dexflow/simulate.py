@@ -604,15 +604,15 @@ def simulate_sequence(
     depth = np.zeros(len(q))
     if frames:  # in chunks of frames: memory bounded on long captures
         depth[frames] = hand_object_depths(hand, q[frames], poses[frames], sdf)[0]
-    balance = dict.fromkeys(frames, float("nan"))
-    if contact_map is not None and frames:
-        balance = dict(zip(frames, contact_imbalance(contact_map, np.array(frames)), strict=True))
+    balance = np.full(len(frames), np.nan)
+    if contact_map is not None:
+        balance = contact_imbalance(contact_map, np.array(frames, dtype=int))
     rows: list[dict] = []
     found = {e: dict.fromkeys(("contact", "bench", "contact_raw", "bench_raw")) for e in engines}
     considered = []  # frames reached before the early stop, tested or not
-    for t in frames:
+    for t, target in zip(frames, balance, strict=True):
         row: dict = {"frame": t, "penetration_m": float(depth[t])}
-        row["contact_imbalance"] = float(balance[t])
+        row["contact_imbalance"] = float(target)
         within = row["penetration_m"] <= p.penetration_tol_m
         considered.append(t)
         if not (within or p.test_over_tolerance):
