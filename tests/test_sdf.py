@@ -136,11 +136,11 @@ def test_grid_signs_equal_every_node_evaluated(shape):
     np.testing.assert_allclose(np.abs(grid.values), exact, atol=1e-7)
     # Not on the surface, nor within 1e-3 of winding 0.5 (the disk spanning a hole). A wrong
     # deduction from the coarse grid gives a whole cell (8 nodes or more, in practice a region)
-    # the wrong side. Isolated disagreements are allowed, up to 1e-5 of the nodes: in CI this
-    # check failed sporadically on the holed sphere, in about 1 of 4 full-suite runs and never
-    # alone or in 8 local runs, and the failing nodes were not captured; libigl's winding
-    # numbers vary run to run (1e-14 in repeated runs here), and the message below names the
-    # nodes if it fails again.
+    # the wrong side. Isolated disagreements are allowed, up to 1e-5 of the nodes: this check
+    # failed on the holed sphere in three full-suite runs (one of them in CI), never in a run of
+    # this file alone nor in four later suite runs, and the failing nodes were not captured;
+    # libigl's winding numbers vary from run to run (by 1e-14 in repeated builds), and the
+    # message below names the nodes if it fails again.
     decided = (np.abs(winding - 0.5) > 1e-3) & (exact > 1e-9)
     assert decided.mean() > 0.95
     wrong = decided & ((grid.values < 0) != (winding > 0.5))
