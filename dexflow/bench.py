@@ -485,8 +485,11 @@ def _pipeline_stages(params, layout) -> list[tuple[str, Callable[[], dict]]]:
     steps = [(hand_stage.STAGE, ()), (align.STAGE, ())]
     steps += [(retarget.STAGE, (method,)) for method in ("dexflow", "position")]
     steps += [(contact.STAGE, ())]
-    # the order dexflow.sweep runs dvc.yaml in: refine reads replay@retarget (refine.grip_m)
+    # the order dexflow.sweep runs dvc.yaml in: refine waits on replay@retarget only when its
+    # grip reads it (refine.grip_input)
     before, after = TRAJECTORIES[:-1], TRAJECTORIES[-1:]
+    if params.refine.grip_m == 0:
+        before, after = [], TRAJECTORIES
     steps += [(simulate.STAGE, (label,)) for label in before]
     steps += [(replay.STAGE, (label,)) for label in before]
     steps += [(refine.STAGE, ())]

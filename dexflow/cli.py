@@ -7,7 +7,7 @@ Subcommands:
   convert ADAPTER SRC [SRC ...] DST [--strict]
                                     dexycb | ho3d | grab | generic -> canonical sequences
   hand init MODEL [--side S] [-o Y] propose a hand yaml from a URDF or MJCF model
-  hand check NAME|YAML [--png P]    validate a hand, print its kinematic tree, draw its zero pose
+  hand check NAME|YAML [--png P]    validate a hand, print its tree, build and step its physics scenes
   hand export NAME|YAML OUT.urdf    write an MJCF hand as a URDF (for pybullet)
   bench fk|retarget|refine|simulate|pipeline|real|long
                                     throughput benchmarks (frames/s against baselines)
@@ -180,18 +180,36 @@ def _cmd_hand_init(args: argparse.Namespace) -> int:
     )
     for key, text in proposal.guesses:
         print(f"GUESS ({key}): {text}")
-    check_hand(out)
+    hand, _ = check_hand(out)
+    _check_physics(hand)
     print(f"wrote {out}; `dexflow hand check {out}` passes")
     return 0
+
+
+def _check_physics(hand) -> list[str]:
+    """Build and step every physics scene of the pipeline for ``hand`` with the project's
+    simulate and replay params (``params.yaml`` here, else the defaults)."""
+    from dexflow.config import load_params
+    from dexflow.params import ReplayParams, SimulateParams
+    from dexflow.scene_check import check_scenes
+
+    if Path("params.yaml").is_file():
+        params = load_params("params.yaml")
+        simulate, replay, where = params.simulate, params.replay, "params.yaml"
+    else:
+        simulate, replay, where = SimulateParams(), ReplayParams(), "default params"
+    lines = check_scenes(hand, simulate, replay)
+    return [f"  physics ({where}, engines {', '.join(simulate.engines)}):"] + [
+        f"    {line}" for line in lines
+    ]
 
 
 def _cmd_hand_check(args: argparse.Namespace) -> int:
     from dexflow.hands.check import check_hand
 
-    name = Path(args.hand).stem
-    png = args.png or f"{name}_zero_pose.png"
-    _, report = check_hand(args.hand, out_png=png)
-    print(report)
+    hand, report = check_hand(args.hand, out_png=args.png)
+    tree, _, summary = report.rpartition("\n")  # the report ends with "ok"
+    print("\n".join([tree, *_check_physics(hand), summary]))
     return 0
 
 
@@ -406,9 +424,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", default="", help="the hand's name (default: the yaml's stem)")
     p.add_argument("--force", action="store_true", help="replace an existing yaml")
     p.set_defaults(func=_cmd_hand_init)
-    p = hand.add_parser("check", help="validate a hand, print its tree, draw its zero pose")
+    p = hand.add_parser(
+        "check",
+        help="validate a hand, print its tree, build and step every physics scene of the pipeline",
+    )
     p.add_argument("hand", help="name in conf/hand/ or a yaml path")
-    p.add_argument("--png", default=None, help="zero-pose picture (default: <name>_zero_pose.png)")
+    p.add_argument("--png", default=None, help="also draw its zero pose into this PNG")
     p.set_defaults(func=_cmd_hand_check)
     p = hand.add_parser("export", help="write an MJCF hand as a URDF")
     p.add_argument("hand")

@@ -16,7 +16,7 @@ from dexflow.io.sequence import Sequence, load_sequence
 from dexflow.params import PipelineParams
 from dexflow.resume import StageOutput
 
-__all__ = ["labelled_output", "load_labelled"]
+__all__ = ["labelled_hand", "labelled_output", "load_labelled"]
 
 
 def labelled_output(
@@ -38,13 +38,18 @@ def labelled_output(
     )
 
 
+def labelled_hand(params: PipelineParams, layout: Layout) -> RobotHand:
+    """The hand, loaded from stage hand's copy (once per process)."""
+    return cached_hand(staged_spec(params.hand, layout.hand_files.root), None)
+
+
 def load_labelled(
     params: PipelineParams, layout: Layout, path: Path
 ) -> tuple[RobotHand, Sequence, np.ndarray, ContactResult]:
     """One sequence's hand, scaled sequence, trajectory ``q (T, dof)`` (``path``) and contacts,
     in a worker limited to one torch thread."""
     torch.set_num_threads(1)
-    hand = cached_hand(staged_spec(params.hand, layout.hand_files.root), None)
+    hand = labelled_hand(params, layout)
     aligned = layout.scale_align
     seq = load_sequence(aligned.sequence(path), data_root=aligned.root)
     q = read_trajectory(path, hand.joint_names, frames=seq.num_frames).q

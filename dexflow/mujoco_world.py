@@ -10,19 +10,25 @@ The scene (one ``MjSpec`` per object, compiled once per :meth:`MujocoGraspWorld.
 - Options: ``timestep_s``, ``impratio``, the implicitfast integrator, elliptic friction cones,
   two noslip iterations, no gravity, MuJoCo's native convex collision (on by default in this
   MuJoCo; the world makes sure it is not disabled).
-- The hand, read by ``mujoco.MjSpec.from_file`` from its URDF or MJCF (no export). Its root body
-  (``hand.model.root``, with its own offset from its parent) is attached under a **mocap body**
-  held at the frame's base pose (``dexflow.hands.robot.base_transform``), so the hand's frames
-  are the kinematic model's; the construction checks it (every body and site named in
+- The hand, read by ``mujoco.MjSpec.from_file`` from its MJCF, or from its URDF as
+  :func:`dexflow.hands.physics.physics_urdf` repaired it (the copy pybullet loads too). Its root
+  body (``hand.model.root``, with its own offset from its parent) is attached under a **mocap
+  body** held at the frame's base pose (``dexflow.hands.robot.base_transform``), so the hand's
+  frames are the kinematic model's; the construction checks it (every body and site named in
   ``hand.model.frames`` within 0.1 mm of ``hand.link_transforms`` at a random configuration
-  with a moved base, else :class:`~dexflow.errors.HandConfigError`). Static bodies are not fused
-  (every link stays a body). The model's own actuators, tendons, equalities, sensors, contact
-  pairs and keyframes are dropped (a configuration from dexflow satisfies the couplings
-  already); every hand joint gets a position actuator (gain ``kp``, no velocity gain, control
-  range = the joint's limits, force unlimited) and ``joint_damping`` on top of its own. A URDF
-  link without ``<inertial>`` weighs ``massless_link_mass_kg`` with a diagonal inertia of
-  ``massless_link_inertia_kgm2`` at its origin (as pybullet's copy of the URDF gives it); so
-  does an MJCF body without inertial data and without geoms (MuJoCo would make it massless).
+  with a moved base, else :class:`~dexflow.errors.HandConfigError`). Every name the hand brings
+  (bodies, joints, geoms, sites, meshes, defaults) is prefixed with :data:`HAND_PREFIX`, so that
+  none clashes with the scene's own (a URDF whose links are called ``world``, ``object`` or
+  ``table`` loads like any other; :func:`hand_name` maps a model name to the scene's). Only the
+  root's subtree is attached: an MJCF's own lights, cameras, floor and other bodies stay out.
+  Static bodies are not fused (every link stays a body). The model's own actuators, tendons,
+  equalities, sensors, contact pairs and keyframes are dropped (a configuration from dexflow
+  satisfies the couplings already); every hand joint gets a position actuator (gain ``kp``, no
+  velocity gain, control range = the joint's limits, force unlimited) and ``joint_damping`` on
+  top of its own. Inertial data is repaired as :mod:`dexflow.hands.physics` says, identically
+  for pybullet: a link without it weighs ``massless_link_mass_kg`` with a diagonal inertia of
+  ``massless_link_inertia_kgm2`` at its origin, moments violating the triangle inequality are
+  balanced.
   Hand-hand collisions are off (as in pybullet); every hand collision geom has condim 4,
   friction ``friction`` (sliding, torsional), solimp (0.5, 0.99, 0.0001) and solref (0.005, 1).
 - The object: one free body whose geoms are the convex parts of stage scale_align (object
@@ -94,10 +100,11 @@ from dexflow.grasp_protocol import (
     pushed_configuration,
 )
 from dexflow.hands.files import urdf_mesh_path
+from dexflow.hands.physics import WORLD_ALIAS, mjcf_inertials, physics_root, physics_urdf
 from dexflow.hands.robot import RobotHand, base_transform
 from dexflow.params import SimulateParams
 
-__all__ = ["MujocoGraspWorld"]
+__all__ = ["HAND_PREFIX", "MujocoGraspWorld", "hand_name"]
 
 _FK_CHECK_TOL_M = 1e-4  # MuJoCo's frames must match the kinematic model's
 _GAP_RANGE_M = 0.01  # MujocoGraspWorld.gap: +inf beyond this (MuJoCo's distances err at 10 cm)
@@ -106,6 +113,7 @@ _HAND_SOLREF = (0.005, 1.0)
 _ROLLING_FRICTION = 1e-4  # MuJoCo's default; unused at condim 4
 _MOUNT = "dexflow_mount"
 _OBJECT = "dexflow_object"
+HAND_PREFIX = "hand/"  # before every name of the hand's in a scene
 
 logger = logging.getLogger(__name__)
 
@@ -123,8 +131,14 @@ def _quat(rotation: np.ndarray) -> np.ndarray:
 def _hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
     """The scene without an object: options, mocap mount, the hand and its actuators."""
     p, mp = params, params.mujoco
-    path = Path(hand.model.path)
-    child = mujoco.MjSpec.from_file(str(path))
+    if hand.model.format == "urdf":  # the repaired copy pybullet loads too
+        path, _ = physics_urdf(hand, p.massless_link_mass_kg, p.massless_link_inertia_kgm2)
+    else:
+        path = Path(hand.model.path)
+    try:
+        child = mujoco.MjSpec.from_file(str(path))
+    except ValueError as exc:
+        raise HandConfigError(f"hand '{hand.spec.name}': MuJoCo cannot read {path}: {exc}") from exc
     folder = Path(child.modelfiledir or path.parent)
     for mesh in child.meshes:  # absolute paths: the scene has no model directory of its own
         if mesh.file and not Path(mesh.file).is_absolute():
@@ -136,20 +150,19 @@ def _hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
         if texture.file and not Path(texture.file).is_absolute():
             texture.file = str(folder / child.texturedir / texture.file)
     child.meshdir = child.texturedir = ""
-    root = child.body(hand.model.root)
-    if root is None:
-        raise HandConfigError(f"hand '{hand.spec.name}': no body '{hand.model.root}' in {path}")
-    no_inertial = _massless(child, root, hand.model.format)
-    for body in no_inertial:
-        body.explicitinertial = True
-        body.mass = p.massless_link_mass_kg
-        body.inertia = [p.massless_link_inertia_kgm2] * 3
-        body.ipos, body.iquat = [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
-    if no_inertial:
-        logger.info(
-            "hand '%s': bodies without inertial data given %g kg: %s",
-            hand.spec.name, p.massless_link_mass_kg, ", ".join(b.name for b in no_inertial),
-        )  # fmt: skip
+    root = child.body(physics_root(hand))
+    if root is None or root.name == child.worldbody.name:
+        raise HandConfigError(
+            f"hand '{hand.spec.name}': no body '{physics_root(hand)}' in {path} for MuJoCo"
+        )
+    if hand.model.format == "mjcf":
+        repaired, _ = mjcf_inertials(hand, p.massless_link_mass_kg, p.massless_link_inertia_kgm2)
+        for name, (mass, ipos, iquat, moments) in repaired.items():
+            body = child.body(name)
+            body.explicitinertial = True
+            body.mass, body.ipos, body.iquat = mass, ipos.tolist(), iquat.tolist()
+            body.inertia = moments.tolist()
+            body.fullinertia = [np.nan, 0.0, 0.0, 0.0, 0.0, 0.0]
 
     scene = mujoco.MjSpec()
     scene.modelname = f"dexflow_{hand.spec.name}"
@@ -164,7 +177,12 @@ def _hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
     ]:
         setattr(child, name, getattr(scene, name))
     mount = scene.worldbody.add_body(name=_MOUNT, mocap=True)
-    mount.add_frame().attach_body(root, "", "")
+    try:  # every name of the hand's gets the prefix: none can clash with the scene's
+        mount.add_frame().attach_body(root, HAND_PREFIX, "")
+    except ValueError as exc:
+        raise HandConfigError(
+            f"hand '{hand.spec.name}': MuJoCo cannot attach {path} to the scene: {exc}"
+        ) from exc
     for kind in ("actuators", "sensors", "tendons", "equalities", "pairs", "keys"):
         for element in list(getattr(scene, kind)):
             scene.delete(element)
@@ -190,7 +208,7 @@ def _hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
         geom.friction = [sliding, torsional, _ROLLING_FRICTION]
         geom.solimp = [*_HAND_SOLIMP, *geom.solimp[3:]]
         geom.solref = list(_HAND_SOLREF)
-    joints = {j.name: j for j in scene.joints}
+    joints = _unprefixed(scene.joints)
     missing = [n for n in hand.hand_joint_names if n not in joints]
     if missing:
         raise HandConfigError(
@@ -203,7 +221,7 @@ def _hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
         damping = np.array(joint.damping, dtype=float)
         damping[0] += mp.joint_damping
         joint.damping = damping
-        actuator = scene.add_actuator(name=f"dexflow_{name}", target=name)
+        actuator = scene.add_actuator(name=f"dexflow_{name}", target=joint.name)
         actuator.trntype = mujoco.mjtTrn.mjTRN_JOINT
         actuator.set_to_position(kp=mp.kp, kv=0.0)
         actuator.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
@@ -212,13 +230,15 @@ def _hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
     return scene
 
 
-def _massless(spec: mujoco.MjSpec, root: mujoco.MjsBody, fmt: str) -> list[mujoco.MjsBody]:
-    """Bodies of the hand (``root`` and below) without inertial data that need the default: in
-    a URDF, links without ``<inertial>``; in an MJCF, bodies without it and without geoms."""
-    bodies = [root, *root.find_all(mujoco.mjtObj.mjOBJ_BODY)]
-    if fmt == "urdf":
-        return [b for b in bodies if not b.explicitinertial]
-    return [b for b in bodies if not b.explicitinertial and not b.geoms]
+def _unprefixed(elements) -> dict:
+    """The hand's elements of a scene by their name in the hand's model (prefix removed)."""
+    return {e.name[len(HAND_PREFIX) :]: e for e in elements if e.name.startswith(HAND_PREFIX)}
+
+
+def hand_name(name: str) -> str:
+    """The scene's name of the hand's body, joint or site ``name`` (a frame of ``hand.model``;
+    a URDF root link named 'world' is :data:`dexflow.hands.physics.WORLD_ALIAS` there)."""
+    return HAND_PREFIX + (WORLD_ALIAS if name == "world" else name)
 
 
 def _add_object(scene: mujoco.MjSpec, parts: list[np.ndarray], params: SimulateParams) -> None:
@@ -294,7 +314,7 @@ class MujocoGraspWorld:
             ) from exc
         m = self.model
         self.data = mujoco.MjData(m)
-        joints = [m.joint(n) for n in self.hand.hand_joint_names]
+        joints = [m.joint(hand_name(n)) for n in self.hand.hand_joint_names]
         self._qpos = np.array([int(j.qposadr[0]) for j in joints])
         self._dofs = np.array([int(j.dofadr[0]) for j in joints])
         mount = m.body(_MOUNT).id
@@ -333,6 +353,8 @@ class MujocoGraspWorld:
         mujoco.mj_kinematics(m, d)
         bodies = {m.body(i).name: i for i in range(m.nbody)}
         sites = {m.site(i).name: i for i in range(m.nsite)}
+        bodies = {n: bodies[hand_name(n)] for n in hand.model.frames if hand_name(n) in bodies}
+        sites = {n: sites[hand_name(n)] for n in hand.model.frames if hand_name(n) in sites}
         names = [n for n in hand.model.frames if n in bodies or n in sites]
         absent = [n for n in hand.model.frames if n not in bodies and n not in sites]
         if absent:
@@ -425,7 +447,7 @@ class MujocoGraspWorld:
         found = self._contacts(_GAP_RANGE_M)
         keep = np.ones(len(found["body"]), bool)
         if links is not None:
-            ids = [self.model.body(n).id for n in links]
+            ids = [self.model.body(hand_name(n)).id for n in links]
             keep = np.isin(found["body"], ids)
         return float(found["dist"][keep].min()) if keep.any() else float("inf")
 
@@ -466,7 +488,7 @@ class MujocoGraspWorld:
         order = np.lexsort((found["dist"], found["body"]))  # by body, closest first
         bodies, first = np.unique(found["body"][order], return_index=True)
         closest = order[first]
-        names = [m.body(int(b)).name for b in bodies]
+        names = [m.body(int(b)).name[len(HAND_PREFIX) :] for b in bodies]
         jac = np.empty((len(bodies), 3, m.nv))
         for k, (b, c) in enumerate(zip(bodies, closest, strict=True)):
             mujoco.mj_jac(m, self.data, jac[k], None, found["point"][c], int(b))

@@ -351,6 +351,12 @@ class ContactParams:
     map_points: int = 8
 
 
+# Stage refine's dvc.yaml dep ``${refine.grip_input}``: replay@retarget's folder when the grip
+# reads it, else a folder refine depends on anyway (so that refine waits on no replay).
+GRIP_INPUT = "data/replay/retarget"
+NO_GRIP_INPUT = "data/contact"
+
+
 @dataclass
 class RefineParams:
     """Stage ``refine`` (``refine`` in params.yaml)."""
@@ -388,6 +394,7 @@ class RefineParams:
     window_overlap: int = 40
     grip_m: float = 0.0
     grip_lead_frames: int = 10
+    grip_input: str = "data/contact"
 
 
 ENGINES = ("pybullet", "mujoco")
@@ -701,6 +708,14 @@ def validate(params: PipelineParams) -> PipelineParams:
     _require(r.release_rounds >= 1, "refine.release_rounds", ">= 1", r.release_rounds)
     _require(0 <= r.grip_m <= 0.02, "refine.grip_m", "within [0, 0.02] metres", r.grip_m)
     _require(r.grip_lead_frames >= 0, "refine.grip_lead_frames", ">= 0", r.grip_lead_frames)
+    grip_input = GRIP_INPUT if r.grip_m > 0 else NO_GRIP_INPUT
+    _require(
+        r.grip_input == grip_input,
+        "refine.grip_input",
+        f"'{grip_input}' with refine.grip_m {r.grip_m:g} (stage refine's dvc.yaml dep: it waits on "
+        "replay@retarget only when it reads it)",
+        r.grip_input,
+    )
     _require(
         r.release_reach_m > r.pen_margin_m,
         "refine.release_reach_m",

@@ -72,7 +72,7 @@ from dexflow.io.artifacts import (
     write_replay,
 )
 from dexflow.io.layout import Layout
-from dexflow.labelled_stage import labelled_output, load_labelled
+from dexflow.labelled_stage import labelled_hand, labelled_output, load_labelled
 from dexflow.mujoco_world import _MOUNT, MujocoGraspWorld, _add_object, _hand_spec
 from dexflow.params import MujocoParams, PipelineParams, ReplayParams, SimulateParams
 from dexflow.runner import StageSpec
@@ -432,6 +432,8 @@ def run_replay(params: PipelineParams, layout: Layout, label: str) -> dict:
     stage = labelled_output("replay", params, layout, label, out)
     files = stage.start()
     rp = params.replay
+    if files:  # a hand MuJoCo cannot load fails the stage once (exit 2), not every sequence
+        _world(labelled_hand(params, layout), rp)
 
     def one(path: Path) -> dict:
         hand, seq, q, found = load_labelled(params, layout, path)

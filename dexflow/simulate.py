@@ -19,9 +19,11 @@ engine depend on the engine set; the SSRs do not.
 
 pybullet, headless (DIRECT). The hand is loaded from its URDF (MJCF hands are exported to URDF
 by :func:`dexflow.hands.export.export_urdf`), its floating base held at the frame's pose by a
-fixed constraint and its joints under position control. Links of the URDF without
-``<inertial>`` (pybullet would make them 1 kg) are given ``massless_link_mass_kg`` and
-``massless_link_inertia_kgm2`` in a copy of the URDF (:func:`hand_urdf`). The object is a
+fixed constraint and its joints under position control. The URDF is repaired as MuJoCo's scene
+is (:func:`hand_urdf`, :mod:`dexflow.hands.physics`): links without ``<inertial>`` (pybullet
+would make them 1 kg) are given ``massless_link_mass_kg`` and ``massless_link_inertia_kgm2``,
+inertias violating the triangle inequality are balanced, links are listed after their
+parents. The object is a
 compound of the convex parts that stage scale_align decomposed it into, with ``object_mass_kg``
 (uniform density: centre of mass and inertia from the parts) and ``friction`` (also given to
 every hand link).
@@ -73,10 +75,7 @@ frame's result does not depend on the frames tested before it.
 
 from __future__ import annotations
 
-import atexit
 import logging
-import shutil
-import tempfile
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -107,7 +106,7 @@ from dexflow.io.artifacts import (
     write_simulation,
 )
 from dexflow.io.layout import Layout
-from dexflow.labelled_stage import labelled_output, load_labelled
+from dexflow.labelled_stage import labelled_hand, labelled_output, load_labelled
 from dexflow.measures import hand_object_depths
 from dexflow.mujoco_world import MujocoGraspWorld
 from dexflow.objects.sdf import SignedDistanceGrid
@@ -205,7 +204,12 @@ class GraspWorld:
         c.setTimeStep(p.control_dt_s / p.substeps)
         # the URDF's inertia tensors (pybullet's default recomputes them from collision shapes)
         flags = self.pb.URDF_MAINTAIN_LINK_ORDER | self.pb.URDF_USE_INERTIA_FROM_FILE
-        self.body = c.loadURDF(self.urdf, flags=flags)
+        try:
+            self.body = c.loadURDF(self.urdf, flags=flags)
+        except self.pb.error as exc:
+            raise HandConfigError(
+                f"hand '{self.hand.spec.name}': pybullet cannot load {self.urdf}: {exc}"
+            ) from exc
         joints = {}
         self.link_index = {c.getBodyInfo(self.body)[0].decode(): -1}
         for i in range(c.getNumJoints(self.body)):
@@ -515,45 +519,14 @@ def _bench(displacement: np.ndarray, rotation: np.ndarray, p: SimulateParams) ->
 
 
 def hand_urdf(hand: RobotHand, params: SimulateParams | None = None) -> Path:
-    """The URDF pybullet loads for ``hand`` (written once per process to a temporary directory
-    when it differs from the model file).
-
-    A URDF hand whose links all carry ``<inertial>`` is loaded as it is. Otherwise a copy gives
-    the links without it ``params.massless_link_mass_kg`` and a diagonal inertia of
-    ``params.massless_link_inertia_kgm2`` (pybullet would make each 1 kg), with mesh paths made
-    absolute. An MJCF hand is exported (:func:`dexflow.hands.export.export_urdf`: MuJoCo's body
-    masses and inertias; the frames the export adds weigh 10 mg).
-
-    Args:
-        hand: The hand.
-        params: The protocol's parameters (defaults if None).
+    """The URDF pybullet loads for ``hand``: :func:`dexflow.hands.physics.physics_urdf` with
+    ``params.massless_link_mass_kg`` and ``massless_link_inertia_kgm2`` (defaults if None):
+    the model itself where it needs no repair, else a repaired copy (an MJCF hand: its export).
     """
-    from dexflow.hands.export import export_urdf, links_without_inertial, with_default_inertials
+    from dexflow.hands.physics import physics_urdf
 
     p = SimulateParams() if params is None else params
-    source = Path(hand.model.path)
-    if hand.model.format == "urdf" and not links_without_inertial(source):
-        return source
-    key = (str(source), hand.model.root, p.massless_link_mass_kg, p.massless_link_inertia_kgm2)
-    if key not in _URDF_CACHE:
-        folder = Path(tempfile.mkdtemp(prefix="dexflow-urdf-"))
-        atexit.register(shutil.rmtree, folder, ignore_errors=True)
-        out = folder / f"{hand.spec.name}.urdf"
-        if hand.model.format == "urdf":
-            filled = with_default_inertials(
-                source, out, p.massless_link_mass_kg, p.massless_link_inertia_kgm2
-            )
-            logger.info(
-                "hand '%s': links without <inertial> given %g kg: %s",
-                hand.spec.name, p.massless_link_mass_kg, ", ".join(filled),
-            )  # fmt: skip
-        else:
-            export_urdf(hand.model, out)
-        _URDF_CACHE[key] = out
-    return _URDF_CACHE[key]
-
-
-_URDF_CACHE: dict[tuple, Path] = {}
+    return physics_urdf(hand, p.massless_link_mass_kg, p.massless_link_inertia_kgm2)[0]
 
 
 def simulate_sequence(
@@ -725,6 +698,9 @@ def run_simulate(params: PipelineParams, layout: Layout, label: str) -> dict:
     stage = labelled_output("simulate", params, layout, label, out)
     files = stage.start()
     sp = params.simulate
+    if files:  # a hand the engines cannot load fails the stage once (exit 2), not every sequence
+        for engine in sp.engines:
+            _world(engine, labelled_hand(params, layout), sp)
 
     def one(path: Path) -> dict:
         hand, seq, q, found = load_labelled(params, layout, path)

@@ -1,9 +1,8 @@
 """``dexflow hand init``: fingers, keypoints, side, couplings and scale read from bare models.
 
-The hands built here (URDF and MJCF strings written to ``tmp_path``) are described in a right
-hand's canonical frame (z along the fingers, y towards the thumb, x out of the palm, as
-:func:`dexflow.human.keypoints.wrist_frame`); their left versions are reflected across the
-x-z plane here, independently of the x -> -x mirror that ``hand init`` writes.
+The hands are built on the fly by :mod:`tests.hand_models` (right-hand canonical frame; left
+versions reflected across the x-z plane there, independently of the x -> -x mirror that
+``hand init`` writes).
 """
 
 from __future__ import annotations
@@ -12,7 +11,7 @@ import re
 import shutil
 import textwrap
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -30,225 +29,7 @@ from dexflow.human.model import forward_keypoints
 from dexflow.io.sequence import Sequence
 from dexflow.params import RetargetParams
 from dexflow.retarget import retarget_sequence
-
-# ------------------------------------------------------------------------- hands built here
-
-
-@dataclass
-class _Joint:
-    name: str
-    parent: str
-    child: str
-    xyz: tuple[float, float, float]
-    rot: np.ndarray | None = None  # child frame in the parent frame
-    axis: tuple[float, float, float] | None = None  # None: fixed
-    limits: tuple[float, float] = (0.0, 1.6)
-    mimic: tuple[str, float] | None = None
-
-
-_REFLECT_Y = np.diag([1.0, -1.0, 1.0])
-MIRROR = np.diag([-1.0, 1.0, 1.0])  # how dexflow mirrors a left-hand sequence (x -> -x)
-
-
-def _urdf(name: str, boxes: dict[str, list], joints: list[_Joint], side: str = "right") -> str:
-    """A URDF of box links; ``side='left'`` reflects the whole hand across the x-z plane."""
-    m = _REFLECT_Y if side == "left" else np.eye(3)
-    out = [f'<?xml version="1.0"?>\n<robot name="{name}">']
-    for link, shapes in boxes.items():
-        body = "".join(
-            f'<collision><origin xyz="{" ".join(map(str, m @ np.asarray(c)))}"/>'
-            f'<geometry><box size="{" ".join(map(str, s))}"/></geometry></collision>'
-            for c, s in shapes
-        )
-        if shapes:  # the first box, solid, 1000 kg/m³; a tilted inertia (ixy) to reflect
-            (c, size) = shapes[0]
-            mass = 1000.0 * float(np.prod(size))
-            a, b, h = size
-            inertia = (
-                f'ixx="{mass * (b * b + h * h) / 12}" iyy="{mass * (a * a + h * h) / 12}" '
-                f'izz="{mass * (a * a + b * b) / 12}" ixy="{mass * a * b / 50}" ixz="0" iyz="0"'
-            )
-            body += (
-                f'<inertial><origin xyz="{" ".join(map(str, m @ np.asarray(c)))}"/>'
-                f'<mass value="{mass}"/><inertia {inertia}/></inertial>'
-            )
-        out.append(f'  <link name="{link}">{body}</link>')
-    for j in joints:
-        rot = m @ (np.eye(3) if j.rot is None else j.rot) @ m
-        rpy = " ".join(map(str, Rotation.from_matrix(rot).as_euler("xyz")))
-        xyz = " ".join(map(str, m @ np.asarray(j.xyz)))
-        kind = "fixed" if j.axis is None else "revolute"
-        inner = f'<parent link="{j.parent}"/><child link="{j.child}"/>'
-        inner += f'<origin xyz="{xyz}" rpy="{rpy}"/>'
-        if j.axis is not None:  # a reflected hinge keeps its angle about -M a
-            axis = -m @ np.asarray(j.axis) if side == "left" else np.asarray(j.axis)
-            inner += f'<axis xyz="{" ".join(map(str, axis))}"/>'
-            inner += f'<limit lower="{j.limits[0]}" upper="{j.limits[1]}" effort="1" velocity="1"/>'
-        if j.mimic is not None:
-            inner += f'<mimic joint="{j.mimic[0]}" multiplier="{j.mimic[1]}"/>'
-        out.append(f'  <joint name="{j.name}" type="{kind}">{inner}</joint>')
-    out.append("</robot>\n")
-    return "\n".join(out)
-
-
-def _finger(
-    prefix: str,
-    parent: str,
-    base: tuple[float, float, float],
-    lengths: tuple[float, float, float],
-    rot: np.ndarray | None = None,
-    abduction: bool = True,
-    tip_link: bool = False,
-    mimic: float | None = None,
-    flex_axis: tuple[float, float, float] = (0.0, 1.0, 0.0),
-) -> tuple[dict[str, list], list[_Joint]]:
-    """A finger along its frame's z: abduction about x, then three flexion joints about y
-    (the tip turns towards +x), box links, optionally a tip link and a mimicking distal joint."""
-    w = 0.016
-    parts = zip(("proximal", "middle", "distal"), lengths, strict=True)
-    boxes = {f"{prefix}_{part}": [((0, 0, h / 2), (w, w, h))] for part, h in parts}
-    joints = []
-    first_parent = parent
-    if abduction:
-        boxes[f"{prefix}_knuckle"] = []
-        joints.append(
-            _Joint(f"{prefix}_abd", parent, f"{prefix}_knuckle", base, rot, (1, 0, 0), (-0.3, 0.3))
-        )
-        first_parent, base, rot = f"{prefix}_knuckle", (0, 0, 0), None
-    joints += [
-        _Joint(f"{prefix}_mcp", first_parent, f"{prefix}_proximal", base, rot, flex_axis),
-        _Joint(f"{prefix}_pip", f"{prefix}_proximal", f"{prefix}_middle", (0, 0, lengths[0]),
-               axis=flex_axis),
-        _Joint(f"{prefix}_dip", f"{prefix}_middle", f"{prefix}_distal", (0, 0, lengths[1]),
-               axis=flex_axis, mimic=None if mimic is None else (f"{prefix}_pip", mimic)),
-    ]  # fmt: skip
-    if tip_link:
-        boxes[f"{prefix}_tip"] = []
-        joints.append(_Joint(f"{prefix}_tipj", f"{prefix}_distal", f"{prefix}_tip",
-                             (0, 0, lengths[2])))  # fmt: skip
-    return boxes, joints
-
-
-def _thumb_rotation() -> np.ndarray:
-    """Thumb frame: z forward and towards the index side, flexing (x) across the palm."""
-    z = np.array([0.35, 0.6, 0.72])
-    z /= np.linalg.norm(z)
-    x = np.array([1.0, -0.8, 0.0])
-    x -= (x @ z) * z
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z], axis=-1)
-
-
-PALM = {"palm": [((0, 0, 0.045), (0.02, 0.075, 0.09))]}
-THUMB = dict(base=(0.012, 0.03, 0.02), lengths=(0.045, 0.033, 0.03), rot=_thumb_rotation())
-
-
-def _hand4(tmp_path, side: str = "right"):
-    """Thumb, index, middle, ring (no little finger); tips only from the collision boxes."""
-    boxes, joints = dict(PALM), []
-    for prefix, spec in (
-        ("th", THUMB),
-        ("if", dict(base=(0, 0.024, 0.09), lengths=(0.045, 0.027, 0.024))),
-        ("mf", dict(base=(0, 0.0, 0.09), lengths=(0.048, 0.029, 0.025))),
-        ("rf", dict(base=(0, -0.024, 0.088), lengths=(0.045, 0.027, 0.024))),
-    ):
-        b, j = _finger(prefix, "palm", **spec)
-        boxes |= b
-        joints += j
-    path = tmp_path / f"hand4_{side}.urdf"
-    path.write_text(_urdf("hand4", boxes, joints, side))
-    return path
-
-
-def _hand5(tmp_path, side: str = "right"):
-    """Five fingers on a palm behind a wrist joint; tip links; each distal joint mimics the
-    middle one (0.7)."""
-    boxes = {"forearm": [((0, 0, -0.06), (0.04, 0.06, 0.1))], **PALM}
-    joints = [_Joint("wrist", "forearm", "palm", (0, 0, 0), axis=(0, 1, 0), limits=(-0.6, 0.6))]
-    for prefix, spec in (
-        ("th", dict(THUMB)),
-        ("if", dict(base=(0, 0.027, 0.09), lengths=(0.045, 0.027, 0.024), mimic=0.7)),
-        ("mf", dict(base=(0, 0.009, 0.09), lengths=(0.048, 0.029, 0.025), mimic=0.7)),
-        ("rf", dict(base=(0, -0.009, 0.088), lengths=(0.045, 0.027, 0.024), mimic=0.7)),
-        ("lf", dict(base=(0, -0.027, 0.082), lengths=(0.035, 0.021, 0.02), mimic=0.7)),
-    ):
-        b, j = _finger(prefix, "palm", tip_link=True, **spec)
-        boxes |= b
-        joints += j
-    path = tmp_path / f"hand5_{side}.urdf"
-    path.write_text(_urdf("hand5", boxes, joints, side))
-    return path
-
-
-def _gripper(tmp_path):
-    """Three fingers: two side by side flexing towards +x, one opposite them flexing to -x."""
-    boxes = {"palm": [((0.02, 0, 0.025), (0.06, 0.06, 0.05))]}
-    joints = []
-    for prefix, base, axis in (
-        ("a", (0, 0.02, 0.05), (0, 1, 0)),
-        ("b", (0, -0.02, 0.05), (0, 1, 0)),
-        ("t", (0.04, 0, 0.05), (0, -1, 0)),
-    ):
-        b, j = _finger(prefix, "palm", base, (0.05, 0.045, 0.0), abduction=False,
-                       tip_link=True, flex_axis=axis)  # fmt: skip
-        del b[f"{prefix}_distal"]  # two flexion joints: proximal, middle, then the tip
-        j = [x for x in j if x.name != f"{prefix}_dip"]
-        j[-1] = replace(j[-1], parent=f"{prefix}_middle", xyz=(0, 0, 0.045))
-        boxes |= b
-        joints += j
-    path = tmp_path / "gripper.urdf"
-    path.write_text(_urdf("gripper", boxes, joints))
-    return path
-
-
-MJCF_HAND = """
-<mujoco model="mjhand">
-  <compiler angle="radian"/>
-  <equality><joint joint1="a2" joint2="a1" polycoef="0.1 0.8 0 0 0"/></equality>
-  <tendon>
-    <fixed name="couple_b" limited="true" range="-0.001 0.001">
-      <joint joint="b1" coef="0.01"/><joint joint="b2" coef="-0.008"/>
-    </fixed>
-    <fixed name="loose" limited="true" range="-0.03 0.03">
-      <joint joint="t1" coef="0.01"/><joint joint="t2" coef="0.01"/>
-    </fixed>
-  </tendon>
-  <worldbody>
-    <body name="object" pos="0.3 0 0"><freejoint/><geom type="sphere" size="0.03"/></body>
-    <body name="mount">
-      <body name="palm">
-        <joint name="wrist" type="hinge" axis="1 0 0" range="-0.5 0.5"/>
-        <geom type="box" size="0.03 0.03 0.025" pos="0.02 0 0.025"/>
-        <body name="a_prox" pos="0 0.02 0.05">
-          <joint name="a1" type="hinge" axis="0 1 0" range="0 1.6"/>
-          <geom type="capsule" fromto="0 0 0 0 0 0.05" size="0.008"/>
-          <body name="a_dist" pos="0 0 0.05">
-            <joint name="a2" type="hinge" axis="0 1 0" range="0 1.6"/>
-            <geom type="capsule" fromto="0 0 0 0 0 0.04" size="0.008"/>
-            <site name="a_tip" pos="0 0 0.048"/>
-          </body>
-        </body>
-        <body name="b_prox" pos="0 -0.02 0.05">
-          <joint name="b1" type="hinge" axis="0 1 0" range="0 1.6"/>
-          <geom type="capsule" fromto="0 0 0 0 0 0.05" size="0.008"/>
-          <body name="b_dist" pos="0 0 0.05">
-            <joint name="b2" type="hinge" axis="0 1 0" range="0 1.6"/>
-            <geom type="capsule" fromto="0 0 0 0 0 0.04" size="0.008"/>
-          </body>
-        </body>
-        <body name="t_prox" pos="0.04 0.005 0.05">
-          <joint name="t1" type="hinge" axis="0 -1 0" range="0 1.6"/>
-          <geom type="capsule" fromto="0 0 0 0 0 0.05" size="0.008"/>
-          <body name="t_dist" pos="0 0 0.05">
-            <joint name="t2" type="hinge" axis="0 -1 0" range="0 1.6"/>
-            <geom type="capsule" fromto="0 0 0 0 0 0.04" size="0.008"/>
-          </body>
-        </body>
-      </body>
-    </body>
-  </worldbody>
-</mujoco>
-"""
+from tests.hand_models import MIRROR, MJCF_HAND, gripper, hand4, hand5
 
 
 def _inertia(inertial) -> np.ndarray:
@@ -351,7 +132,7 @@ def test_shadow_mjcf_reads_like_its_hand_written_yaml():
 
 
 def test_four_finger_hand_without_little_finger(tmp_path):
-    proposal = propose_hand(_hand4(tmp_path))
+    proposal = propose_hand(hand4(tmp_path))
     spec = proposal.spec
     assert _joints(spec) == {
         "thumb": ["th_abd", "th_mcp", "th_pip", "th_dip"],
@@ -384,7 +165,7 @@ def test_four_finger_hand_without_little_finger(tmp_path):
 
 def test_three_finger_gripper_finds_the_opposing_thumb_and_says_what_it_guessed(tmp_path):
     out = tmp_path / "gripper.yaml"
-    proposal = init_hand(_gripper(tmp_path), out)
+    proposal = init_hand(gripper(tmp_path), out)
     spec = proposal.spec
     # The thumb opposes the others; they sit symmetrically, so the index is where a right
     # hand's would be (+y, the side of the thumb in the human canonical frame).
@@ -410,7 +191,7 @@ def test_three_finger_gripper_finds_the_opposing_thumb_and_says_what_it_guessed(
 
 
 def test_mimic_joints_wrist_and_little_finger(tmp_path):
-    proposal = propose_hand(_hand5(tmp_path))
+    proposal = propose_hand(hand5(tmp_path))
     spec = proposal.spec
     assert list(spec.fingers) == ["thumb", "index", "middle", "ring", "little"]
     assert [spec.fingers[f].joints[0] for f in spec.fingers] == [
@@ -436,7 +217,7 @@ def test_mimic_joints_wrist_and_little_finger(tmp_path):
     assert float(q[0, dip]) == pytest.approx(0.7 * float(q[0, pip]))
 
 
-@pytest.mark.parametrize("build", [_hand4, _hand5])
+@pytest.mark.parametrize("build", [hand4, hand5])
 def test_side_is_read_from_the_geometry(tmp_path, build):
     right, left = propose_hand(build(tmp_path, "right")), propose_hand(build(tmp_path, "left"))
     assert (right.detected_side, left.detected_side) == ("right", "left")
@@ -453,8 +234,8 @@ def test_side_is_read_from_the_geometry(tmp_path, build):
 
 
 def test_left_hand_is_used_as_it_is_and_right_sequences_are_mirrored_to_it(tmp_path):
-    right = init_hand(_hand4(tmp_path, "right"), tmp_path / "r.yaml").spec
-    left = init_hand(_hand4(tmp_path, "left"), tmp_path / "l.yaml").spec
+    right = init_hand(hand4(tmp_path, "right"), tmp_path / "r.yaml").spec
+    left = init_hand(hand4(tmp_path, "left"), tmp_path / "l.yaml").spec
     assert (left.side, left.mirrored, left.model) == ("left", False, "hand4_left.urdf")
     assert "side: left" in (tmp_path / "l.yaml").read_text()
     # scale_align mirrors a human hand of the other side than the robot's, with its scene.
@@ -469,8 +250,8 @@ def test_left_hand_is_used_as_it_is_and_right_sequences_are_mirrored_to_it(tmp_p
 
 
 def test_left_hand_mirrored_on_request_retargets_as_the_right_one(tmp_path):
-    right = init_hand(_hand5(tmp_path, "right"), tmp_path / "right.yaml").spec
-    left = init_hand(_hand5(tmp_path, "left"), tmp_path / "left.yaml", mirror=True).spec
+    right = init_hand(hand5(tmp_path, "right"), tmp_path / "right.yaml").spec
+    left = init_hand(hand5(tmp_path, "left"), tmp_path / "left.yaml", mirror=True).spec
     assert (left.side, left.mirrored, left.model) == ("left", True, "left_mirrored.urdf")
     assert "mirrored: true" in (tmp_path / "left.yaml").read_text()
     assert not _mirror(_human_sequence(), left)  # the mirror image is a right hand
@@ -496,7 +277,7 @@ def test_mirrored_model_is_the_reflection(tmp_path, which):
         path = resolve_model_path("pkg://dexflow/hands/assets/allegro_right.urdf")
         model = load_kinematic_model(path)
     elif which == "hand5":
-        model = load_kinematic_model(_hand5(tmp_path, "left"))
+        model = load_kinematic_model(hand5(tmp_path, "left"))
     else:
         (tmp_path / "mj.xml").write_text(MJCF_HAND)
         model = load_kinematic_model(tmp_path / "mj.xml", "mount")
@@ -597,7 +378,7 @@ def test_generated_configs_retarget_like_hand_written_ones(tmp_path):
             surface_points: 500
             """,
     }
-    models = {"hand4": _hand4(tmp_path), "gripper": _gripper(tmp_path)}
+    models = {"hand4": hand4(tmp_path), "gripper": gripper(tmp_path)}
     seq = _human_sequence()
     for name, text in written.items():
         (tmp_path / f"{name}_written.yaml").write_text(textwrap.dedent(text))
@@ -635,7 +416,7 @@ def test_builtin_hands_retarget_a_demo_sequence_within_1_5x(tmp_path, name):
 
 
 def test_cli_writes_a_checked_yaml_and_prints_its_guesses(tmp_path, capsys, monkeypatch):
-    model = _gripper(tmp_path)
+    model = gripper(tmp_path)
     monkeypatch.chdir(tmp_path)
     assert cli_main(["hand", "init", str(model)]) == 0  # no conf/hand here: ./gripper.yaml
     out = capsys.readouterr().out
@@ -660,7 +441,7 @@ def test_side_and_mirrored_are_validated_and_default_to_a_right_hand(tmp_path):
     with pytest.raises(HandConfigError, match="mirrored"):
         load_hand_spec(bad)
     with pytest.raises(HandConfigError, match="side must be"):
-        propose_hand(_gripper(tmp_path), side="both")
+        propose_hand(gripper(tmp_path), side="both")
 
 
 def test_a_generated_yaml_composes_into_the_pipeline_params(tmp_path):
@@ -671,7 +452,7 @@ def test_a_generated_yaml_composes_into_the_pipeline_params(tmp_path):
 
     conf = tmp_path / "conf"
     shutil.copytree(project_root() / "conf", conf)
-    model = _hand4(conf / "hand", "left")
+    model = hand4(conf / "hand", "left")
     init_hand(model, conf / "hand" / "myhand.yaml")
     params = load_params(compose_params(["hand=myhand"], tmp_path / "p.yaml", config_dir=conf))
     assert (params.hand.name, params.hand.side, params.hand.mirrored) == ("myhand", "left", False)

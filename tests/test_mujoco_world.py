@@ -20,7 +20,7 @@ from dexflow.grasp_protocol import (
     perturbations,
 )
 from dexflow.hands import load_hand
-from dexflow.mujoco_world import MujocoGraspWorld
+from dexflow.mujoco_world import MujocoGraspWorld, hand_name
 from dexflow.objects.convex import write_convex_obj
 from dexflow.params import PerturbationParams, SimulateParams
 
@@ -106,7 +106,7 @@ def test_scene_follows_the_protocol_settings(scene, tmp_path):
     assert not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_NATIVECCD)
     assert m.body_mass[world._object] == pytest.approx(mp.object_mass_kg, rel=1e-6)
     mount = m.body("dexflow_mount").id
-    assert m.body_mocapid[mount] == 0 and m.body_parentid[m.body("base").id] == mount
+    assert m.body_mocapid[mount] == 0 and m.body_parentid[m.body(hand_name("base")).id] == mount
     np.testing.assert_allclose(m.actuator_gainprm[:, 0], mp.kp)
     np.testing.assert_allclose(m.actuator_biasprm[:, :3], [[0.0, -mp.kp, 0.0]] * m.nu)
     np.testing.assert_allclose(
@@ -129,9 +129,9 @@ def test_scene_follows_the_protocol_settings(scene, tmp_path):
     params = SimulateParams(massless_link_mass_kg=0.003, massless_link_inertia_kgm2=2e-7)
     light = MujocoGraspWorld(load_hand(yaml), params).model
     for link in ("base", "f0_tip", "f1_tip", "f2_tip"):
-        assert light.body(link).mass[0] == pytest.approx(0.003)
-        np.testing.assert_allclose(light.body(link).inertia, (2e-7,) * 3)
-    assert light.body("f0_prox").mass[0] == pytest.approx(0.02)  # its own inertial stays
+        assert light.body(hand_name(link)).mass[0] == pytest.approx(0.003)
+        np.testing.assert_allclose(light.body(hand_name(link)).inertia, (2e-7,) * 3)
+    assert light.body(hand_name("f0_prox")).mass[0] == pytest.approx(0.02)  # its own inertial stays
 
 
 def test_damped_step_moves_the_points_and_takes_several_targets_at_once():

@@ -362,15 +362,20 @@ def test_failed_jobs_are_recorded_while_the_others_complete(project):
 
 
 def test_stages_run_after_the_stages_whose_outputs_they_read():
-    """refine reads replay@retarget (refine.grip_m), a foreach stage further down dvc.yaml: the
-    sweep runs it first; a cycle is an error naming the stages."""
-    stages = load_stages(ROOT / "dvc.yaml", load_yaml(ROOT / "params.yaml"))
-    names = [s.name for s in stages]
-    assert names.index("replay@retarget") < names.index("refine") < names.index("replay@refine")
-    upstream = upstream_stages(stages)
+    """With the grip on, refine reads replay@retarget (``refine.grip_input``), a foreach stage
+    further down dvc.yaml: the sweep runs it first; with it off (the default) refine waits on
+    no replay. A cycle is an error naming the stages."""
+    params = load_yaml(ROOT / "params.yaml")
+    off = load_stages(ROOT / "dvc.yaml", params)
+    assert not any(u.startswith("replay") for u in upstream_stages(off)["refine"])
+    params["refine"] |= {"grip_m": 0.005, "grip_input": "data/replay/retarget"}
+    for stages in (off, load_stages(ROOT / "dvc.yaml", params)):
+        names = [s.name for s in stages]
+        upstream = upstream_stages(stages)
+        for stage in stages:
+            assert all(names.index(u) < names.index(stage.name) for u in upstream[stage.name])
     assert "replay@retarget" in upstream["refine"]
-    for stage in stages:
-        assert all(names.index(u) < names.index(stage.name) for u in upstream[stage.name])
+    assert names.index("replay@retarget") < names.index("refine") < names.index("replay@refine")
 
 
 def test_a_cycle_in_dvc_yaml_is_named(tmp_path):

@@ -9,6 +9,7 @@ base at the identity every link frame equals :meth:`RobotHand.link_transforms` a
 
 from __future__ import annotations
 
+import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -16,11 +17,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dexflow.errors import HandConfigError
-from dexflow.hands.files import urdf_mesh_path
 from dexflow.hands.model import KinematicModel
 from dexflow.io.atomic import atomic_path
 
-__all__ = ["ROOT_LINK", "export_urdf", "links_without_inertial", "with_default_inertials"]
+__all__ = ["ROOT_LINK", "export_urdf"]
 
 ROOT_LINK = "hand_root"
 _DEFAULT_EFFORT = 10.0
@@ -32,14 +32,16 @@ def _fmt(values) -> str:
 
 
 def _origin(parent: ET.Element, pos, quat_wxyz) -> None:
-    rpy = Rotation.from_quat(quat_wxyz, scalar_first=True).as_euler("xyz")
+    with warnings.catch_warnings():  # at gimbal lock any of the equivalent angle sets will do
+        warnings.filterwarnings("ignore", "Gimbal lock", UserWarning)
+        rpy = Rotation.from_quat(quat_wxyz, scalar_first=True).as_euler("xyz")
     ET.SubElement(parent, "origin", xyz=_fmt(pos), rpy=_fmt(rpy))
 
 
 def _inertial(link: ET.Element, mass: float, pos=(0, 0, 0), quat=(1, 0, 0, 0), diag=(1e-6,) * 3):
     inertial = ET.SubElement(link, "inertial")
     _origin(inertial, pos, quat)
-    ET.SubElement(inertial, "mass", value=f"{max(float(mass), 1e-5):.9g}")
+    ET.SubElement(inertial, "mass", value=f"{max(float(mass), 0.0):.9g}")
     ixx, iyy, izz = (max(float(d), 1e-9) for d in diag)
     ET.SubElement(
         inertial,
@@ -82,6 +84,10 @@ def _geometry(m, g: int, mesh_dir: Path, rel_dir: str) -> ET.Element | None:
 
 def export_urdf(model: KinematicModel, out_path: str | Path) -> Path:
     """Write ``model`` (an MJCF hand) as a URDF at ``out_path``; meshes go to ``<stem>_meshes/``.
+
+    Bodies keep MuJoCo's masses and inertias as they are (a massless body stays massless:
+    :func:`dexflow.hands.physics.physics_urdf` gives it the documented default); the frames the
+    export adds (the root link, one per site) weigh 10 mg.
 
     Returns:
         ``out_path``.
@@ -170,59 +176,3 @@ def export_urdf(model: KinematicModel, out_path: str | Path) -> Path:
     with atomic_path(out_path) as tmp:
         tmp.write_text(header + text + "\n")
     return out_path
-
-
-def links_without_inertial(urdf_path: str | Path) -> list[str]:
-    """Names of the links of a URDF that have no ``<inertial>`` (pybullet gives them 1 kg)."""
-    root = ET.parse(urdf_path).getroot()
-    return [link.get("name") for link in root.iter("link") if link.find("inertial") is None]
-
-
-def with_default_inertials(
-    urdf_path: str | Path, out_path: str | Path, mass_kg: float, inertia_kgm2: float
-) -> list[str]:
-    """Copy a URDF, giving every link without ``<inertial>`` a small mass and inertia.
-
-    Physics engines read a link without ``<inertial>`` as something else than massless (pybullet:
-    1 kg at the link origin). The copy gives such links ``mass_kg`` at their origin and the
-    diagonal inertia ``inertia_kgm2`` (kg·m²) about each axis; everything else is unchanged,
-    except that mesh file names become absolute paths, so the copy loads from any directory.
-
-    Args:
-        urdf_path: The hand's URDF.
-        out_path: Where the copy goes.
-        mass_kg: Mass given to links without inertial data (> 0).
-        inertia_kgm2: Their principal moments of inertia (> 0).
-
-    Returns:
-        The names of the links that were given the default.
-    """
-    if not mass_kg > 0 or not inertia_kgm2 > 0:
-        raise HandConfigError(
-            f"default link inertial data must be positive: mass {mass_kg!r} kg, inertia "
-            f"{inertia_kgm2!r} kg·m²"
-        )
-    urdf_path = Path(urdf_path)
-    tree = ET.parse(urdf_path)
-    filled = []
-    for link in tree.getroot().iter("link"):
-        if link.find("inertial") is None:
-            _inertial(link, mass_kg, diag=(inertia_kgm2,) * 3)
-            filled.append(link.get("name"))
-    for mesh in tree.getroot().iter("mesh"):
-        if mesh.get("filename"):
-            try:
-                path = urdf_mesh_path(mesh.get("filename"), urdf_path.parent)
-            except HandConfigError:  # an unresolvable package:// mesh stays as it was
-                continue
-            if path.is_file():  # (collision meshes are checked when the hand is loaded)
-                mesh.set("filename", str(path.resolve()))
-    ET.indent(tree)
-    text = ET.tostring(tree.getroot(), encoding="unicode")
-    header = (
-        f'<?xml version="1.0"?>\n<!-- {urdf_path.name}, with default inertial data for links '
-        f"without it ({mass_kg:g} kg, {inertia_kgm2:g} kg m^2), written by dexflow. -->\n"
-    )
-    with atomic_path(Path(out_path)) as tmp:
-        tmp.write_text(header + text + "\n", encoding="utf-8")
-    return filled
