@@ -9,7 +9,9 @@ right robot hand) is first mirrored with its whole scene (:mod:`dexflow.io.mirro
 object poses, and a mirrored copy of the object), so the robot tracks the motion it can
 reproduce. A sequence whose fingertips never come within
 :data:`~dexflow.io.sequence.NEAR_OBJECT_M` of the object is kept with a warning (its entry's
-``warning``): there is no contact to retarget.
+``warning``): there is no contact to retarget. An object mesh that was inside out is flipped by
+:func:`~dexflow.objects.mesh.load_mesh`, and said in the ``warning`` of its ``meta.json`` and of
+every sequence using it.
 
 Per object, computed once whatever the number of sequences using it, at the scaled size:
 
@@ -43,7 +45,7 @@ from dexflow.io.layout import Layout, ObjectPaths, StageDir
 from dexflow.io.mirror import mirror_mesh, mirror_sequence
 from dexflow.io.sequence import NEAR_OBJECT_M, Sequence, load_sequence, save_sequence
 from dexflow.objects.convex import cached_convex_decomposition, write_convex_obj
-from dexflow.objects.mesh import load_mesh, write_obj
+from dexflow.objects.mesh import MESH_WARNING, load_mesh, write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.objects.surface import sample_surface
 from dexflow.params import HandParams, PipelineParams
@@ -109,10 +111,14 @@ class ObjectJob:
 
 
 def prepare_object(job: ObjectJob, in_root: Path, out: ObjectPaths, params: PipelineParams) -> dict:
-    """Scale one object mesh and write its precomputation to ``out`` (``objects/<key>/``)."""
+    """Scale one object mesh and write its precomputation to ``out`` (``objects/<key>/``).
+
+    A mesh :func:`~dexflow.objects.mesh.load_mesh` repaired (flipped inside out) gets its
+    warning in ``meta.json`` and the returned entry (``warning``)."""
     cfg = params.scale_align
     scale = params.hand.scale
     unscaled = load_mesh(in_root / job.mesh_rel)
+    warning = unscaled.metadata.get(MESH_WARNING)
     if job.mirror:
         unscaled = mirror_mesh(unscaled)
     mesh = unscaled.copy()
@@ -150,6 +156,8 @@ def prepare_object(job: ObjectJob, in_root: Path, out: ObjectPaths, params: Pipe
     }
     if job.mirror:
         meta["mirrored"] = True
+    if warning:
+        meta["warning"] = warning
     save_json(out.meta, meta)
     return meta
 
@@ -250,7 +258,11 @@ def run_scale_align(params: PipelineParams, layout: Layout) -> dict:
         if not obj.ok:  # the object's own failure decides: bad mesh, or the machine (retried)
             error = RuntimeError if obj.retry else MeshError
             raise error(f"object {obj.item.mesh_rel} failed: {obj.error}")
-        return align_sequence(path, in_root, out, params, obj.item.key)
+        entry = align_sequence(path, in_root, out, params, obj.item.key)
+        if obj.value and obj.value.get("warning"):  # the object's warning is the sequence's
+            notes = [f"object {obj.item.mesh_rel}: {obj.value['warning']}", entry.get("warning")]
+            entry["warning"] = "; ".join(n for n in notes if n)
+        return entry
 
     todo = [p for p in files if p.stem not in errors]
     seq_results = stage.map(run_one, todo, params.run, "sequences")

@@ -33,15 +33,31 @@ __all__ = ["main"]
 
 
 def _cmd_params(args: argparse.Namespace) -> int:
-    from dexflow.config import compose_params, project_root
+    """Compose conf/ into params.yaml (``--check``: compare with it), refusing a hand the
+    stages would refuse.
 
-    target = project_root() / "params.yaml"
-    if not args.check:
-        compose_params(args.overrides, target)
-        print(f"wrote {target}")
-        return 0
+    The composition is written to a temporary file and its hand is built as the stages build
+    it (:class:`~dexflow.hands.robot.RobotHand`: the model read, every link and joint name the
+    hand yaml gives checked against it) before it replaces params.yaml: a hand naming a missing
+    link stops here (HandConfigError, exit 2), not in retarget after scale_align ran on every
+    sequence.
+    """
+    from dexflow.config import compose_params, load_params, project_root
+    from dexflow.hands.robot import RobotHand
+    from dexflow.io.atomic import atomic_path
+    from dexflow.io.layout import Layout
+
+    root = project_root()
+    target = root / "params.yaml"
     with tempfile.TemporaryDirectory() as tmp:
-        fresh = compose_params(args.overrides, Path(tmp) / "params.yaml").read_text()
+        composed = compose_params(args.overrides, Path(tmp) / "params.yaml")
+        RobotHand(load_params(composed).hand, Layout(root=root).hand_dir)
+        if not args.check:
+            with atomic_path(target) as out:
+                out.write_bytes(composed.read_bytes())
+            print(f"wrote {target}")
+            return 0
+        fresh = composed.read_text()
     current = target.read_text() if target.is_file() else ""
     if fresh == current:
         print(f"{target} is up to date with conf/")
@@ -57,19 +73,22 @@ def _cmd_params(args: argparse.Namespace) -> int:
 
 def _cmd_validate(args: argparse.Namespace) -> int:
     from dexflow.errors import DexflowError
+    from dexflow.io.layout import stray_files
     from dexflow.io.sequence import load_sequence
 
-    paths = []
+    paths, strays = [], {}
     for p in args.paths:
         p = Path(p)
-        if p.is_dir():  # hidden files (._name.npz, .name.tmp.npz) are not sequences
-            found = sorted(p.glob("**/*.npz"))
-            paths += [
-                f for f in found if not any(s.startswith(".") for s in f.relative_to(p).parts)
-            ]
+        if p.is_dir():  # the files the pipeline reads: <data root>/sequences/*.npz
+            folder = p / "sequences" if (p / "sequences").is_dir() else p
+            paths += sorted(f for f in folder.glob("*.npz") if not f.name.startswith("."))
+            strays |= stray_files(folder)
         else:
             paths.append(p)
-    bad = 0
+    for path, why in strays.items():  # the pipeline would leave them out: not valid inputs
+        print(f"FAIL {path}: {why}")
+    bad = len(strays)
+    paths_seen = len(paths) + len(strays)
     meshes: dict[Path, object] = {}
     for path in paths:
         try:
@@ -79,7 +98,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
         except DexflowError as exc:
             bad += 1
             print(f"FAIL {exc}")
-    print(f"{len(paths) - bad} valid, {bad} invalid")
+    print(f"{paths_seen - bad} valid, {bad} invalid")
     return 1 if bad or not paths else 0
 
 

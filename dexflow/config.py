@@ -6,7 +6,9 @@ what ``dvc exp run`` writes; it is composed beside the target and checked before
 it, so a rejected value never reaches ``params.yaml``. Stages call :func:`load_params`, which
 validates every section against the schemas of :mod:`dexflow.params`. Every error is one
 :class:`ConfigError` line naming the key (with the keys or options allowed there) or the file,
-line and column of a YAML syntax error.
+line and column of a YAML syntax error. YAML files are checked before anything expands their
+aliases (:func:`dexflow.hands.spec.check_yaml_file`): a "billion laughs" document in ``conf/``
+or ``params.yaml`` is refused in milliseconds instead of hanging the composition.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from dexflow.errors import ConfigError
+from dexflow.hands.spec import check_yaml_file
 from dexflow.io.atomic import atomic_path
 from dexflow.io.layout import project_root
 from dexflow.params import PipelineParams, validate
@@ -94,6 +97,18 @@ def _hydra_message(exc: Exception) -> str:
     return " ".join(str(exc).split("\n")[0].split()) or type(exc).__name__
 
 
+def _check_yaml_files(config_dir: Path) -> None:
+    """Refuse a yaml file of ``config_dir`` whose aliases would expand without bound, before
+    Hydra reads any (it reads only those the composition selects, but which ones is known only
+    as it goes). Syntax errors and unreadable files are left to Hydra, which reports them for the
+    files it reads."""
+    for file in sorted(config_dir.rglob("*.yaml")):
+        try:
+            check_yaml_file(file)
+        except (yaml.YAMLError, UnicodeDecodeError, OSError):
+            continue
+
+
 def compose_params(
     overrides: list[str] | None = None,
     output: str | Path | None = None,
@@ -124,6 +139,7 @@ def compose_params(
             continue  # added or deleted keys, Hydra's own, group choices: Hydra checks them
         if message := _unknown_key(key):
             raise ConfigError(message)
+    _check_yaml_files(config_dir)
     GlobalHydra.instance().clear()
     try:
         # Composed beside the target and checked there: a rejected value never replaces it.
@@ -157,6 +173,7 @@ def _load(path: Path, label: str | None) -> PipelineParams:
     """:func:`load_params` of an existing file; errors start with ``label`` if given."""
     prefix = f"{label}: " if label else ""
     try:
+        check_yaml_file(path)
         raw = OmegaConf.load(path)
         merged = OmegaConf.merge(OmegaConf.structured(PipelineParams), raw)
         params = OmegaConf.to_object(merged)

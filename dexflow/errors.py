@@ -13,6 +13,7 @@ __all__ = [
     "IncompleteStageError",
     "MeshError",
     "SequenceFormatError",
+    "UnsafePickleError",
 ]
 
 
@@ -62,6 +63,24 @@ class SequenceFormatError(DexflowError, ValueError):
         if frame is not None:
             where += f", frame {frame}"
         super().__init__(f"{where}: expected {expected}, found {found}")
+
+
+class UnsafePickleError(SequenceFormatError):
+    """A pickle in a data file names a global that plain data never needs (``os.system``,
+    ``builtins.exec``): unpickling it could run code, so it is refused unread.
+
+    Attributes:
+        global_name: The refused global, ``module.name``.
+    """
+
+    def __init__(self, path: str | Path | None, global_name: str, field: str = "<pickle>") -> None:
+        self.global_name = global_name
+        super().__init__(
+            path,
+            field,
+            "plain data only (arrays, numbers, strings, lists, dicts; a data file runs no code)",
+            f"the global '{global_name}', refused",
+        )
 
 
 class IncompleteStageError(RuntimeError):

@@ -241,8 +241,10 @@ def _map_joblib(func: Callable, items: list, n_jobs: int, bar: tqdm) -> list[Ite
                             pool_failed(i, exc)
                             processes = 1  # nothing more to the pool
                         bar.update()
-        except BaseException:  # Ctrl-C: end with the item this process is on
+        except BaseException:  # Ctrl-C, or the stage stopped: end with the item this process is on
             stop.set()
+            if workers is not None:  # no worker outlives an interrupted stage
+                workers.shutdown(wait=False, kill_workers=True)
             raise
         here.result()  # re-raises what _run does not catch
     if ready is not None:  # still starting: of no use now

@@ -59,7 +59,7 @@ import numpy as np
 
 from dexflow.errors import IncompleteStageError
 from dexflow.io.atomic import atomic_path, save_json
-from dexflow.io.layout import StageDir
+from dexflow.io.layout import StageDir, stray_files
 from dexflow.parallel import ItemResult, map_items
 
 if TYPE_CHECKING:
@@ -341,6 +341,12 @@ class StageOutput:
         warnings: dict[str, list[str]] = {}
         names = set(own)
         for root in self.inputs:
+            if not (root / "summary.json").exists():  # a data root: what no stage reads
+                folder = StageDir(root).sequences_dir
+                for path, why in stray_files(folder).items():
+                    name = path.relative_to(folder).as_posix()
+                    dropped.setdefault(name, {"stage": "data", "error": f"{path}: {why}"})
+                    names.add(name)
             before = _read_summary(root / "summary.json")
             for name, info in before.get("dropped", {}).items():
                 dropped.setdefault(name, info)

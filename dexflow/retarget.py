@@ -39,6 +39,7 @@ low-pass filtered afterwards; frames without an observation hold the last soluti
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from dataclasses import dataclass, replace
@@ -52,11 +53,11 @@ from scipy.spatial.transform import Rotation
 from dexflow.hands.files import staged_spec
 from dexflow.hands.jacobian import KeypointJacobian
 from dexflow.hands.robot import RobotHand, cached_hand
-from dexflow.human.cleaning import detect_bad_frames
+from dexflow.human.cleaning import detect_bad_frames, nearest_index
 from dexflow.io.artifacts import Trajectory, write_trajectory
 from dexflow.io.layout import Layout
 from dexflow.io.sequence import Sequence, load_sequence
-from dexflow.measures import fingertip_speeds, rms_acceleration, velocity_kl
+from dexflow.measures import fingertip_speeds, frame_chunks, rms_acceleration, velocity_kl
 from dexflow.params import GlobalSearchParams, PipelineParams, RetargetParams
 from dexflow.resume import StageOutput
 from dexflow.runner import StageSpec
@@ -131,6 +132,12 @@ class _Problem:
         kp, jac = self.jacobian(torch.as_tensor(self.full(x), dtype=self.hand.dtype))
         return kp.numpy(), jac.numpy() @ self.a  # (T,K,3), (T,K,3,n)
 
+    def keypoints_only(self, x: np.ndarray) -> np.ndarray:
+        """(T, K, 3) keypoints of ``x (T, n)`` as :meth:`keypoints` computes them, without the
+        Jacobians and :func:`~dexflow.measures.frame_chunks` frames at a time: memory bounded
+        whatever the sequence's length."""
+        return np.concatenate([self.keypoints(x[s])[0] for s in frame_chunks(len(x))])
+
 
 def _temporal_blocks(n_frames: int, w_vel: np.ndarray, w_acc: np.ndarray):
     """Blocks of the constant temporal Hessian: diagonal (T,n,n), first (T-1) and second
@@ -161,25 +168,24 @@ def _temporal_blocks(n_frames: int, w_vel: np.ndarray, w_acc: np.ndarray):
     return diag, sub1, sub2
 
 
-_BAND_INDEX: dict[tuple[int, int], tuple[np.ndarray, ...]] = {}
-
-
+@functools.lru_cache(maxsize=4)
 def _band_index(n_frames: int, n: int) -> tuple[np.ndarray, ...]:
-    """Cached scatter indices from (diag, sub1, sub2) blocks into lower banded storage."""
-    key = (n_frames, n)
-    if key not in _BAND_INDEX:
-        r, c = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-        parts = []
-        for offset, count in enumerate((n_frames, n_frames - 1, n_frames - 2)):
-            keep = (offset * n + r - c >= 0) if offset == 0 else np.ones_like(r, dtype=bool)
-            if count <= 0:
-                parts.append(None)
-                continue
-            rows = np.broadcast_to((offset * n + r - c)[keep], (count, int(keep.sum())))
-            cols = np.arange(count)[:, None] * n + c[keep][None]
-            parts.append((rows.reshape(-1), cols.reshape(-1), r[keep], c[keep]))
-        _BAND_INDEX[key] = tuple(parts)
-    return _BAND_INDEX[key]
+    """Scatter indices from (diag, sub1, sub2) blocks into lower banded storage.
+
+    About 60 KB a frame, so only the last few sizes are kept (a sequence's chunks have at most
+    three: a whole chunk, the last one, a recovery's): a cache of every length a stage met grew
+    with the data (0.16 MB per frame over a stage's sequences of many lengths)."""
+    r, c = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    parts = []
+    for offset, count in enumerate((n_frames, n_frames - 1, n_frames - 2)):
+        keep = (offset * n + r - c >= 0) if offset == 0 else np.ones_like(r, dtype=bool)
+        if count <= 0:
+            parts.append(None)
+            continue
+        rows = np.broadcast_to((offset * n + r - c)[keep], (count, int(keep.sum())))
+        cols = np.arange(count)[:, None] * n + c[keep][None]
+        parts.append((rows.reshape(-1), cols.reshape(-1), r[keep], c[keep]))
+    return tuple(parts)
 
 
 def _to_banded(diag, sub1, sub2) -> np.ndarray:
@@ -342,8 +348,7 @@ def _initial_base(hand: RobotHand, human: np.ndarray, observed: np.ndarray) -> n
     base[idx, :3] = target_centre - rotation.apply(centre)
     base[idx, 3:] = rotation.as_euler("XYZ")  # the floating base's Rx Ry Rz (base_transform)
     # Unobserved frames: nearest observed frame; unwrap angles so the base moves continuously.
-    nearest = idx[np.abs(np.arange(len(human))[:, None] - idx[None]).argmin(axis=1)]
-    base = base[nearest]
+    base = base[nearest_index(idx, len(human))]
     base[:, 3:] = np.unwrap(base[:, 3:], axis=0)
     return base
 
@@ -391,7 +396,9 @@ def retarget_sequence(seq: Sequence, hand: RobotHand, params: RetargetParams) ->
 
     q = hand.clamp(torch.as_tensor(problem.full(x))).numpy()
     with torch.no_grad():
-        robot = hand.keypoints(torch.as_tensor(q)).numpy()
+        robot = np.concatenate(
+            [hand.keypoints(torch.as_tensor(q[s])).numpy() for s in frame_chunks(len(q))]
+        )
     error = np.linalg.norm(robot - human, axis=-1).mean(axis=-1)
     error[~observed] = np.nan
     stats["seconds"] = time.perf_counter() - start
@@ -446,7 +453,7 @@ def _recover(problem, x, human, weights, observed, params, stats) -> np.ndarray:
     """Re-initialise frames whose error jumped (tracking lost) by global search; solve again."""
     if params.global_search.mode == "off" or params.max_recoveries <= 0:
         return x
-    kp, _ = problem.keypoints(x)
+    kp = problem.keypoints_only(x)
     error = np.linalg.norm(kp - human, axis=-1).mean(axis=-1)
     obs = np.flatnonzero(observed)
     if len(obs) == 0:
@@ -461,7 +468,7 @@ def _recover(problem, x, human, weights, observed, params, stats) -> np.ndarray:
         stats["global_searches"] += 1
     stats["recoveries"] += len(bad)
     candidate = _solve_dexflow(problem, x0, human, weights, params, stats)
-    kp_c, _ = problem.keypoints(candidate)
+    kp_c = problem.keypoints_only(candidate)
     better = np.linalg.norm(kp_c - human, axis=-1).mean(axis=-1)[obs].mean() < error[obs].mean()
     return candidate if better else x
 

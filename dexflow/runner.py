@@ -20,6 +20,9 @@ code:
 - 1: no sequence went through, or an item failed for a reason other than its input (a full disk,
   memory, a killed worker: :class:`~dexflow.errors.IncompleteStageError`). Nothing is written
   then, so DVC caches nothing, and the next ``dvc repro`` resumes and retries those items;
+- 1 also when another run of the same stage still goes on in this project (a ``dvc repro``
+  started while an interrupted one's stage runs: :func:`stage_lock`); a stage whose ``dvc
+  repro`` is killed stops with it (:func:`_stops_with_parent`), its workers too;
 - 2: the configuration or the input as a whole is unusable (``params.yaml``, no sequences
   under ``data.root``); the one-line message names the key or the folder.
 
@@ -29,9 +32,18 @@ key ``timing``, which is never written into the stage's outputs (DVC hashes thos
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import fcntl
+import hashlib
 import logging
-from collections.abc import Callable
+import os
+import signal
+import sys
+import tempfile
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 from dexflow.config import load_params
 from dexflow.errors import DexflowError, IncompleteStageError
@@ -39,7 +51,7 @@ from dexflow.io.atomic import save_json
 from dexflow.io.layout import Layout
 from dexflow.params import PipelineParams
 
-__all__ = ["StageSpec", "run_stage", "stage_main"]
+__all__ = ["StageBusyError", "StageSpec", "run_stage", "stage_lock", "stage_main"]
 
 log = logging.getLogger("dexflow.stage")
 
@@ -113,6 +125,71 @@ def _sequence_entries(summary: dict) -> dict[str, dict]:
     return entries if isinstance(entries, dict) else {}
 
 
+@contextlib.contextmanager
+def _stops_with_parent() -> Iterator[None]:
+    """While the stage runs, stop (SIGTERM) when the process that started it dies: a killed
+    ``dvc repro`` leaves no stage running on as an orphan (Linux; elsewhere only the SIGTERM
+    part). SIGTERM ends the stage the way Ctrl-C does: its worker processes are stopped and the
+    finished items stay recorded for the next run. Both are undone afterwards."""
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    prctl = ctypes.CDLL(None).prctl if sys.platform.startswith("linux") else None
+    if prctl is not None:
+        prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    try:
+        yield
+    finally:
+        if prctl is not None:
+            prctl(_PR_SET_PDEATHSIG, 0, 0, 0, 0)
+        signal.signal(signal.SIGTERM, previous)
+
+
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+@contextlib.contextmanager
+def stage_lock(root: Path, label: str) -> Iterator[None]:
+    """Hold the lock of stage ``label`` of the project at ``root`` while it runs.
+
+    A second run of the same stage in the same project (a ``dvc repro`` started while an
+    interrupted one's stage still runs) would write the same files at the same time; it stops
+    at once instead. The lock is an ``flock`` on a file in the system's temporary folder, so
+    the kernel releases it whenever the holder dies, however it dies.
+
+    Raises:
+        StageBusyError: another process holds it (its pid in the message).
+    """
+    key = hashlib.sha1(str(Path(root).resolve()).encode()).hexdigest()[:16]
+    folder = Path(tempfile.gettempdir()) / "dexflow-locks"
+    folder.mkdir(exist_ok=True)
+    path = folder / f"{key}-{label.replace('@', '_')}.lock"
+    with open(path, "a+") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "?"
+            raise StageBusyError(
+                f"{label}: another run of this stage is still going in {Path(root).resolve()} "
+                f"(pid {holder}); wait for it to end or stop it, then run again"
+            ) from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(str(os.getpid()))
+        handle.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+class StageBusyError(RuntimeError):
+    """Another process runs the same stage of the same project."""
+
+
 def stage_main(spec: StageSpec, args: list[str] | None = None) -> int:
     """A stage script's ``main``: see the module docstring for the exit codes. An unexpected
     exception (a bug) still ends in a traceback."""
@@ -120,7 +197,11 @@ def stage_main(spec: StageSpec, args: list[str] | None = None) -> int:
     label = "@".join([spec.name, *(args or ())])
     try:
         params = load_params("params.yaml")
-        summary = run_stage(spec, params, Layout.of(params.data.root), tuple(args or ()))
+        with _stops_with_parent(), stage_lock(Path.cwd(), label):
+            summary = run_stage(spec, params, Layout.of(params.data.root), tuple(args or ()))
+    except StageBusyError as exc:
+        log.error("%s", exc)
+        return 1
     except IncompleteStageError as exc:
         log.error("%s", exc)
         return 1

@@ -24,6 +24,11 @@ Each source sequence is read on its own: a file that cannot be read (a corrupt p
 file with an unexpected name, a text cell in a CSV) fails that sequence only, with the source
 file named in its error, and the others are converted; ``convert.json`` is always written.
 
+Source files are untrusted (:mod:`dexflow.io.untrusted`): pickles (HO-3D frames, GRAB members)
+may build plain data only, archive headers are checked before anything is inflated, and every
+path or name read from data (an object name, a mesh path, a DexYCB serial) must stay inside its
+folder, links followed: the models folder, SRC, or DST for the meshes written.
+
 Layouts (only the files dexflow reads are listed):
 
 - **DexYCB**: ``<subject>/<sequence>/meta.yml`` (``serials``, ``ycb_ids``, ``ycb_grasp_ind``,
@@ -57,7 +62,6 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import pickle
 from collections.abc import Callable, Iterator
 from collections.abc import Sequence as Sequence_
 from dataclasses import dataclass
@@ -68,13 +72,14 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from dexflow.errors import DexflowError
 from dexflow.geometry import transform_points, world_to_object
-from dexflow.human.cleaning import detect_bad_frames
+from dexflow.human.cleaning import detect_bad_frames, nearest_index
 from dexflow.human.keypoints import FINGERTIPS
 from dexflow.human.mano import MANO_TO_DEXFLOW, ManoModel, load_mano
 from dexflow.io.atomic import save_json
 from dexflow.io.layout import StageDir
 from dexflow.io.mirror import mirror_mesh, mirror_sequence
 from dexflow.io.sequence import Sequence, save_sequence
+from dexflow.io.untrusted import MAX_FRAMES, load_npz, load_pickle
 from dexflow.objects.mesh import load_mesh, write_obj
 from dexflow.objects.sdf import signed_distance
 
@@ -176,6 +181,46 @@ def _need(path: Path, what: str) -> Path:
     return path
 
 
+def _inside(root: Path, relative: str, where: Path | str, field: str, name: bool = False) -> Path:
+    """``root / relative``, where ``relative`` comes from data: it must stay inside ``root``.
+
+    Links are followed (``Path.resolve``): a link inside ``root`` that leads out of it is refused
+    like ``..`` or an absolute path, so that no file outside ``root`` is read or written. Every
+    path or name an adapter reads from data goes through here.
+
+    Args:
+        root: The folder the path must stay in (the models folder, SRC, or DST).
+        relative: The path as the data gives it, relative to ``root``.
+        where: The file the path was read from (named in errors).
+        field: The field that holds it (named in errors).
+        name: ``relative`` must be one plain name (an object's): no separator, ``.`` or ``..``.
+
+    Returns:
+        ``root / relative``, as given (not resolved).
+
+    Raises:
+        DatasetLayoutError: one line naming ``where``, ``field`` and ``root``.
+    """
+    rel = Path(relative)
+    refused = not relative or "\0" in relative or bool(rel.anchor) or ".." in rel.parts
+    if name and (relative in (".", "..") or "/" in relative or "\\" in relative):
+        raise DatasetLayoutError(
+            f"{where}: field '{field}': {relative!r} does not name one entry of {root} (a name "
+            "read from data may hold no path separator, '.' or '..')"
+        )
+    if not refused:
+        try:
+            refused = not (root / rel).resolve().is_relative_to(root.resolve())
+        except (OSError, RuntimeError):  # a loop of links
+            refused = True
+    if refused:
+        raise DatasetLayoutError(
+            f"{where}: field '{field}': {relative!r} leads out of {root} (a path read from data "
+            "must be relative to that folder and stay inside it, links followed)"
+        )
+    return root / rel
+
+
 @contextlib.contextmanager
 def _reading(path: Path) -> Iterator[None]:
     """Name ``path`` in any error reading it raises (a corrupt pickle, an unreadable archive)."""
@@ -269,21 +314,17 @@ def _read_dexycb(src: Path, meta_path: Path, models: Path, options: ConvertOptio
     seq_dir = meta_path.parent
     serials = [str(s) for s in _field(meta, "serials", meta_path)]
     serial = options.camera or serials[0]
+    cam_dir = _inside(seq_dir, serial, meta_path, "serials", name=True)
     ycb_ids = _field(meta, "ycb_ids", meta_path)
     grasp = int(_field(meta, "ycb_grasp_ind", meta_path))
     side = str(_field(meta, "mano_sides", meta_path)[0])
-    calib = (
-        src
-        / "calibration"
-        / f"extrinsics_{_field(meta, 'extrinsics', meta_path)}"
-        / "extrinsics.yml"
-    )
+    calib_dir = f"extrinsics_{_field(meta, 'extrinsics', meta_path)}"
+    _inside(src / "calibration", calib_dir, meta_path, "extrinsics", name=True)
+    calib = _inside(src, f"calibration/{calib_dir}/extrinsics.yml", meta_path, "extrinsics")
     extr = _field(_read_yaml(calib), "extrinsics", calib)
     cam_to_world = np.eye(4)
     cam_to_world[:3] = np.asarray(_field(extr, serial, calib), dtype=np.float64).reshape(3, 4)
-    labels = _visible(
-        _need(seq_dir / serial, f"camera folder of serial {serial}").glob("labels_*.npz")
-    )
+    labels = _visible(_need(cam_dir, f"camera folder of serial {serial}").glob("labels_*.npz"))
     if not labels:
         raise DatasetLayoutError(f"{seq_dir / serial}: no labels_*.npz files")
     frames = [_frame_number(p, "labels_<n>.npz") for p in labels]
@@ -292,10 +333,11 @@ def _read_dexycb(src: Path, meta_path: Path, models: Path, options: ConvertOptio
     pose = np.full((n_frames, 4, 4), np.nan)
     template = np.zeros(n_frames, dtype=bool)
     for frame, path in zip(frames, labels, strict=True):
-        with _reading(path), np.load(path) as data:
+        with _reading(path):
+            data = load_npz(path)
             joints = np.asarray(_field(data, "joint_3d", path), dtype=np.float64).reshape(21, 3)
             objects = np.asarray(_field(data, "pose_y", path), dtype=np.float64)
-            mano = np.asarray(data["pose_m"]) if "pose_m" in data.files else None
+            mano = np.asarray(data["pose_m"]) if "pose_m" in data else None
         if np.all(joints == -1):
             pass  # DexYCB's "no hand in this frame"
         elif mano is not None and not mano.any():
@@ -304,8 +346,13 @@ def _read_dexycb(src: Path, meta_path: Path, models: Path, options: ConvertOptio
             kp[frame] = transform_points(cam_to_world, joints)
         if len(objects) > grasp and np.isfinite(objects[grasp]).all() and objects[grasp].any():
             pose[frame] = cam_to_world @ np.vstack([objects[grasp], [0, 0, 0, 1]])
-    name = YCB_CLASSES[int(ycb_ids[grasp]) - 1]
-    mesh = models / name / "textured_simple.obj"
+    ycb_id = int(ycb_ids[grasp])
+    if not 1 <= ycb_id <= len(YCB_CLASSES):
+        raise DatasetLayoutError(
+            f"{meta_path}: field 'ycb_ids': {ycb_id} is not a YCB-Video id (1..{len(YCB_CLASSES)})"
+        )
+    name = YCB_CLASSES[ycb_id - 1]
+    mesh = _inside(models, f"{name}/textured_simple.obj", meta_path, "ycb_ids")
     return RawSequence(
         f"{seq_dir.parent.name}_{seq_dir.name}",
         kp,
@@ -358,11 +405,11 @@ def _read_ho3d(seq_dir: Path, models: Path, options: ConvertOptions) -> RawSeque
     kp = np.full((n_frames, 21, 3), np.nan)
     pose = np.full((n_frames, 4, 4), np.nan)
     template = np.zeros(n_frames, dtype=bool)
-    names, side, mano_frames = set(), "right", {}
+    names: dict[str, Path] = {}  # each object name, with the first file naming it
+    side, mano_frames = "right", {}
     for frame, path in zip(frames, files, strict=True):
         with _reading(path):  # a frame file that is not what HO-3D writes is named
-            with open(path, "rb") as handle:
-                meta = pickle.load(handle, encoding="latin1")
+            meta = load_pickle(path)
             if not isinstance(meta, dict):
                 raise DatasetLayoutError(f"{path}: expected a dict, found {type(meta).__name__}")
             t = frame - first
@@ -378,7 +425,7 @@ def _read_ho3d(seq_dir: Path, models: Path, options: ConvertOptions) -> RawSeque
             if rot is not None and trans is not None:
                 pose[t] = _pose(rot, trans)
             if meta.get("objName") is not None:
-                names.add(str(meta["objName"]))
+                names.setdefault(str(meta["objName"]), path)
     if mano_frames:
         model = _mano_for(options, side)
         ts = sorted(mano_frames)
@@ -390,12 +437,14 @@ def _read_ho3d(seq_dir: Path, models: Path, options: ConvertOptions) -> RawSeque
         raise DatasetLayoutError(
             f"{seq_dir}: expected one 'objName' in the frames, found {sorted(names)}"
         )
-    name = names.pop()
+    (name, where), *_ = names.items()
+    _inside(models, name, where, "objName", name=True)
+    mesh = _inside(models, f"{name}/textured_simple.obj", where, "objName")
     return RawSequence(
         f"{seq_dir.parent.name}_{seq_dir.name}",
         kp,
         pose,
-        models / name / "textured_simple.obj",
+        mesh,
         name,
         options.fps or 30.0,
         side,
@@ -423,18 +472,16 @@ def _read_grab(src: Path, path: Path, options: ConvertOptions) -> list[RawSequen
     """One GRAB file: a sequence per hand side asked for."""
     sides = ("right", "left") if options.side == "both" else (options.side,)
     out = []
-    with _reading(path), np.load(path, allow_pickle=True) as data:
-        raw = {
-            k: data[k].item() if data[k].dtype == object and data[k].shape == () else data[k]
-            for k in data.files
-        }
+    with _reading(path):
+        data = load_npz(path, allow_objects=True)
+    raw = {k: v.item() if v.dtype == object and v.shape == () else v for k, v in data.items()}
     fps = float(_field(raw, "framerate", path))
     obj = _field(raw, "object", path)
     params = _field(obj, "params", f"{path}: object")
     transl = np.asarray(_field(params, "transl", f"{path}: object.params"), dtype=np.float64)
     orient = np.asarray(_field(params, "global_orient", f"{path}: object.params"), dtype=np.float64)
     pose = RigidTransform.from_components(transl, Rotation.from_rotvec(orient)).as_matrix()
-    mesh = src / str(_field(obj, "object_mesh", f"{path}: object"))
+    mesh = _inside(src, str(_field(obj, "object_mesh", f"{path}: object")), path, "object_mesh")
     for side in sides:
         hand = _field(raw, "rhand" if side == "right" else "lhand", path)
         if "joints" in hand:
@@ -482,11 +529,12 @@ def _numbers(path: Path, table, columns: list[str]) -> np.ndarray:
 def _read_generic(src: Path, path: Path, options: ConvertOptions) -> RawSequence:
     """One generic sequence (``<name>.npz``, or ``<name>.csv`` and ``<name>.json``)."""
     if path.suffix == ".npz":
-        with _reading(path), np.load(path, allow_pickle=False) as data:
-            fields = {k: data[k] for k in data.files}
+        with _reading(path):
+            fields = load_npz(path, max_frames=MAX_FRAMES)
+        where = path
         kp = np.asarray(_field(fields, "keypoints", path), dtype=np.float64)
     else:
-        sidecar = _need(path.with_suffix(".json"), "sidecar .json (obj_mesh, fps)")
+        sidecar = where = _need(path.with_suffix(".json"), "sidecar .json (obj_mesh, fps)")
         with _reading(sidecar):
             fields = json.loads(sidecar.read_text())
         import pandas as pd
@@ -534,7 +582,7 @@ def _read_generic(src: Path, path: Path, options: ConvertOptions) -> RawSequence
         kp, pose, fps = _on_uniform_grid(path, fields["timestamps"], fps, kp, pose)
     if fps <= 0:
         raise DatasetLayoutError(f"{path}: no 'fps' in the file and no --fps given")
-    mesh = src / str(_field(fields, "obj_mesh", path))
+    mesh = _inside(src, str(_field(fields, "obj_mesh", path)), where, "obj_mesh")
     return RawSequence(
         path.stem,
         kp * scale,
@@ -604,8 +652,7 @@ def _hold_nearest(pose: np.ndarray) -> np.ndarray:
     if not good.any():
         raise DatasetLayoutError("the object pose is not annotated in any frame")
     idx = np.flatnonzero(good)
-    nearest = idx[np.abs(np.arange(len(pose))[:, None] - idx[None]).argmin(axis=1)]
-    return pose[nearest]
+    return pose[nearest_index(idx, len(pose))]
 
 
 def fingertip_surface_distance(seq: Sequence, mesh, frames: int = 40) -> np.ndarray:
@@ -630,10 +677,12 @@ def write_sequence(raw: RawSequence, dst: Path, options: ConvertOptions) -> dict
     valid = observed.copy()
     if not valid.any():
         raise DatasetLayoutError(f"{raw.name}: no frame has a usable hand")
+    _inside(dst / "meshes", raw.obj_name, raw.name, "obj_name", name=True)
     mesh = load_mesh(_need(raw.mesh_path, f"object model of '{raw.obj_name}'"))
     mesh_rel = f"meshes/{raw.obj_name}.obj"
-    if not (dst / mesh_rel).exists():
-        write_obj(dst / mesh_rel, mesh)
+    mesh_out = _inside(dst, mesh_rel, raw.name, "obj_name")
+    if not mesh_out.exists():
+        write_obj(mesh_out, mesh)
     seq = Sequence(
         keypoints=kp,
         obj_pose=_hold_nearest(raw.obj_pose),
@@ -647,8 +696,9 @@ def write_sequence(raw: RawSequence, dst: Path, options: ConvertOptions) -> dict
     if raw.side == "left":
         mesh = mirror_mesh(mesh)
         mirrored_rel = f"meshes/{raw.obj_name}_mirrored.obj"
-        if not (dst / mirrored_rel).exists():
-            write_obj(dst / mirrored_rel, mesh)
+        mirrored_out = _inside(dst, mirrored_rel, raw.name, "obj_name")
+        if not mirrored_out.exists():
+            write_obj(mirrored_out, mesh)
         seq = mirror_sequence(seq, mirrored_rel)
     elif raw.side != "right":
         raise DatasetLayoutError(f"{raw.name}: side '{raw.side}'; expected 'right' or 'left'")

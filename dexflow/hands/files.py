@@ -6,6 +6,13 @@ textures, height fields and skins. :func:`model_files` lists them all, so that t
 copy them into a directory DVC tracks (stage ``hand``, :mod:`dexflow.hand_stage`) and no stage
 reads a file DVC does not see.
 
+A hand model is data someone else wrote, so every file it names must stay inside the folder it
+may read (:func:`model_root`): a URDF mesh ``/etc/hostname`` or ``../../secret.stl``, or a
+symbolic link inside the model's folder pointing out of it, would otherwise be read by the
+loaders and copied into ``data/hand``. Listing (:func:`model_files`) and loading
+(:func:`check_model_paths`, called by :mod:`dexflow.hands.model`) refuse such a name with a
+one-line :class:`~dexflow.errors.HandConfigError` naming the model, the element and the folder.
+
 This module needs only the standard library: the ``hand`` stage runs it on every ``dvc repro``.
 """
 
@@ -28,8 +35,11 @@ if TYPE_CHECKING:
 
 __all__ = [
     "RECORD",
+    "check_inside",
+    "check_model_paths",
     "copy_model",
     "model_files",
+    "model_root",
     "resolve_model_path",
     "staged_model_path",
     "staged_spec",
@@ -54,22 +64,31 @@ _MJCF_FILE_ATTRS = {
 }
 
 
+def _package_dir(package: str, model: str) -> Path:
+    """The folder of the installed Python package ``package`` (``model`` names it, for the
+    message); found without importing it, so no code of the package runs."""
+    try:
+        spec = importlib.util.find_spec(package) if package.isidentifier() else None
+    except (ImportError, ValueError):
+        spec = None
+    if spec is None or not spec.submodule_search_locations:
+        raise HandConfigError(f"hand model '{model}': Python package '{package}' is not installed")
+    return Path(next(iter(spec.submodule_search_locations))).resolve()
+
+
 def resolve_model_path(model: str, base_dir: str | Path | None = None) -> Path:
     """Find a model file: ``pkg://<package>/<path>``, an absolute path, or a relative one.
 
     Relative paths are tried against ``base_dir`` (the hand yaml's directory), then the
-    working directory.
+    working directory. A ``pkg://`` path must stay inside its package (``pkg://dexflow/../..``
+    is refused).
     """
     if not model:
         raise HandConfigError("hand model: empty path; expected a URDF or MJCF file")
     if model.startswith("pkg://"):
         package, _, rel = model[len("pkg://") :].partition("/")
-        spec = importlib.util.find_spec(package)
-        if spec is None or not spec.submodule_search_locations:
-            raise HandConfigError(
-                f"hand model '{model}': Python package '{package}' is not installed"
-            )
-        path = Path(next(iter(spec.submodule_search_locations))) / rel
+        package_dir = _package_dir(package, model)
+        path = check_inside(package_dir / rel, package_dir, model, "the model path")
     else:
         path = Path(model)
         if not path.is_absolute():
@@ -84,16 +103,108 @@ def resolve_model_path(model: str, base_dir: str | Path | None = None) -> Path:
 def urdf_mesh_path(filename: str, urdf_dir: Path) -> Path:
     """A URDF mesh ``filename`` as a path: ``package://`` (tried beside the URDF, then as an
     installed Python package), ``file://``, absolute, or relative to the URDF's directory."""
+    path, package_dir = _urdf_mesh(filename, urdf_dir)
+    if package_dir is not None and not path.is_file():
+        raise HandConfigError(f"hand model '{filename}': no file at {path}")
+    return path
+
+
+def _urdf_mesh(filename: str, urdf_dir: Path) -> tuple[Path, Path | None]:
+    """:func:`urdf_mesh_path` (not checked to exist), and the package's folder where a
+    ``package://`` name resolved to an installed Python package (its files may stay only
+    there), else None."""
     if filename.startswith("package://"):
         rel = filename[len("package://") :]
-        for candidate in (urdf_dir / rel.partition("/")[2], urdf_dir / rel, urdf_dir.parent / rel):
+        inside = rel.partition("/")[2]  # a ROS package: <package>/urdf/ beside <package>/meshes/
+        for candidate in (urdf_dir / inside, urdf_dir / rel, urdf_dir.parent / inside,
+                          urdf_dir.parent / rel):  # fmt: skip
             if candidate.is_file():
-                return candidate
-        return resolve_model_path("pkg://" + rel)
+                return candidate, None
+        package, _, inside = rel.partition("/")
+        package_dir = _package_dir(package, filename)
+        return (package_dir / inside).resolve(), package_dir
     if filename.startswith("file://"):
         filename = filename[len("file://") :]
     path = Path(filename)
-    return path if path.is_absolute() else urdf_dir / path
+    return (path if path.is_absolute() else urdf_dir / path), None
+
+
+def model_root(path: str | Path) -> Path:
+    """The folder every file the model at ``path`` names must resolve into (symlinks followed).
+
+    - The model's own folder, for a model of the user's (a relative or absolute path): a model
+      is shipped as its folder, and nothing outside it is part of it. (So a URDF's
+      ``package://`` mesh found in the URDF's parent folder, the last place tried beside it,
+      is refused for such a model.)
+    - The folder of the installed Python package the model lies in (``pkg://`` models, or a
+      path into one): packages lay out their models' parts in sibling folders (the ShadowHand
+      of ``gymnasium_robotics`` reads ``../stls/hand``), and a package is installed as a whole.
+      The package is the outermost folder holding an ``__init__.py`` that the interpreter
+      finds under the folder's name (nothing is imported to tell).
+    - The ROS package folder (holding ``package.xml``) whose sub-folder holds the model, for
+      the ROS layout ``<package>/urdf/hand.urdf`` naming ``package://<package>/meshes/...``.
+    - The folder of the copy stage ``hand`` wrote (``data/hand/model``), for that copy: its
+      tree is the original's, and every file in it was checked when it was copied.
+    """
+    path = Path(path).resolve()
+    return _staged_root(path) or _package_root(path) or _ros_package_root(path) or path.parent
+
+
+def _ros_package_root(path: Path) -> Path | None:
+    """The ROS package folder (it holds ``package.xml``) whose sub-folder (``urdf/``) holds the
+    model: its meshes lie in a sibling folder (``meshes/``), named ``package://<package>/...``."""
+    folder = path.parent.parent
+    return folder if (folder / "package.xml").is_file() else None
+
+
+def _staged_root(path: Path) -> Path | None:
+    """``<out>/model`` if ``path`` is the model a stage ``hand`` record ``<out>/hand.json``
+    names, else None."""
+    for folder in path.parents:
+        if folder.name == _FILES_DIR and (folder.parent / RECORD).is_file():
+            try:
+                record = json.loads((folder.parent / RECORD).read_text(encoding="utf-8"))
+                named = (folder.parent / str(record["model"])).resolve()
+            except (OSError, ValueError, KeyError, TypeError):
+                return None
+            return folder if named == path else None
+    return None
+
+
+def _package_root(path: Path) -> Path | None:
+    """The folder of the installed top-level Python package holding ``path``, if any."""
+    for folder in reversed(path.parents):  # outermost first
+        if not (folder.name.isidentifier() and (folder / "__init__.py").is_file()):
+            continue
+        try:
+            spec = importlib.util.find_spec(folder.name)
+        except (ImportError, ValueError):
+            continue
+        locations = (spec.submodule_search_locations or []) if spec else []
+        if any(Path(location).resolve() == folder for location in locations):
+            return folder
+    return None
+
+
+def check_inside(file: Path, root: Path, model: str | Path, field: str) -> Path:
+    """``file`` resolved (symlinks followed), if it lies inside ``root``.
+
+    Args:
+        file: A path the model names, as its loader would open it.
+        root: The folder it must stay in (:func:`model_root`, or a package's folder).
+        model: The model file, for the message.
+        field: The element and attribute naming ``file``, for the message.
+
+    Raises:
+        HandConfigError: ``file`` resolves outside ``root``.
+    """
+    resolved = file.resolve()
+    if not resolved.is_relative_to(root):
+        raise HandConfigError(
+            f"{model}: {field} resolves to {resolved}, outside {root}; a hand model may only "
+            f"read files inside that folder"
+        )
+    return resolved
 
 
 def _parse(path: Path, what: str) -> ET.Element:
@@ -109,14 +220,28 @@ def _must_exist(path: Path, model: Path, what: str) -> Path:
     return path.resolve()
 
 
-def _urdf_files(path: Path) -> list[Path]:
-    root = _parse(path, "URDF")
+def _urdf_files(path: Path, must_exist: bool = True) -> list[Path]:
+    """The URDF and the files its ``<mesh filename>`` name, each checked to lie in its folder
+    (:func:`model_root`, or the package's folder for a ``package://`` name resolved as an
+    installed package). With ``must_exist`` False, names that resolve to no file are left out
+    rather than refused (the loader reports a missing collision mesh; nobody reads a missing
+    visual one)."""
+    root = model_root(path)
     files = [path]
-    for mesh in root.iter("mesh"):
+    for mesh in _parse(path, "URDF").iter("mesh"):
         filename = mesh.get("filename")
-        if filename:
-            where = f"<mesh filename='{filename}'>"
-            files.append(_must_exist(urdf_mesh_path(filename, path.parent), path, where))
+        if not filename:
+            continue
+        where = f"<mesh filename='{filename}'>"
+        try:
+            file, package_dir = _urdf_mesh(filename, path.parent)
+        except HandConfigError:
+            if must_exist:
+                raise
+            continue
+        file = check_inside(file, package_dir or root, path, where)
+        if must_exist or file.is_file():
+            files.append(_must_exist(file, path, where))
     return files
 
 
@@ -126,9 +251,10 @@ def _mjcf_files(path: Path) -> list[Path]:
     As MuJoCo resolves them: include files relative to the main file's directory; asset files
     relative to the compiler's ``meshdir`` / ``texturedir`` (themselves relative to the main
     file's directory, defaulting to ``assetdir``), or absolute; ``strippath`` drops their
-    directories.
+    directories. Every include, directory and file must resolve inside :func:`model_root`; an
+    include is checked before it is read.
     """
-    model_dir = path.parent
+    model_dir, allowed = path.parent, model_root(path)
     files: list[Path] = []
     elements: list[ET.Element] = []
     pending = [path]
@@ -142,11 +268,16 @@ def _mjcf_files(path: Path) -> list[Path]:
         for include in root.iter("include"):
             name = include.get("file") or ""
             where = f"<include file='{name}'> (in {current.name})"
+            check_inside(model_dir / name, allowed, path, where)
             pending.append(_must_exist(model_dir / name, path, where))
     compiler: dict[str, str] = {}
     for element in elements:
         if element.tag == "compiler":
             compiler.update(element.attrib)
+    for key in ("assetdir", "meshdir", "texturedir"):
+        if key in compiler:
+            where = f"<compiler {key}='{compiler[key]}'>"
+            check_inside(model_dir / compiler[key], allowed, path, where)
     asset_dir = compiler.get("assetdir", "")
     strip = compiler.get("strippath", "false").lower() == "true"
     for element in elements:
@@ -160,7 +291,8 @@ def _mjcf_files(path: Path) -> list[Path]:
             file = Path(Path(name).name if strip else name)
             if not file.is_absolute():
                 file = model_dir / compiler.get(dir_key, asset_dir) / file
-            files.append(_must_exist(file, path, f"<{element.tag} {attr}='{name}'>"))
+            where = f"<{element.tag} {attr}='{name}'>"
+            files.append(_must_exist(check_inside(file, allowed, path, where), path, where))
     return files
 
 
@@ -168,13 +300,32 @@ def model_files(path: str | Path) -> list[Path]:
     """Every file loading the model at ``path`` reads, the model first, each once.
 
     Raises:
-        HandConfigError: the model or a file it names is missing or unreadable.
+        HandConfigError: the model or a file it names is missing or unreadable, or a name
+            resolves outside the model's folder (:func:`model_root`).
     """
     path = Path(path).resolve()
     if not path.is_file():
         raise HandConfigError(f"hand model: no file at {path}")
     files = _urdf_files(path) if path.suffix.lower() == ".urdf" else _mjcf_files(path)
     return list(dict.fromkeys(files))
+
+
+def check_model_paths(path: str | Path) -> None:
+    """Refuse a model naming a file outside its folder, before a loader reads any.
+
+    An MJCF is checked as :func:`model_files` lists it (MuJoCo needs all its files anyway); a
+    URDF checks every ``<mesh filename>`` (visual ones too: the physics engines load them), but
+    leaves the report of a missing file to the loader, as before.
+
+    Raises:
+        HandConfigError: a name resolves outside :func:`model_root`, or an MJCF file is
+            missing or unreadable.
+    """
+    path = Path(path).resolve()
+    if path.suffix.lower() == ".urdf":
+        _urdf_files(path, must_exist=False)
+    else:
+        model_files(path)
 
 
 def copy_model(model: str, base_dir: str | Path | None, out_dir: str | Path) -> dict:

@@ -19,7 +19,7 @@ from pytorch_kinematics import transforms as pk_tf
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from dexflow.errors import HandConfigError
-from dexflow.hands.files import resolve_model_path, urdf_mesh_path
+from dexflow.hands.files import check_model_paths, resolve_model_path, urdf_mesh_path
 
 __all__ = ["Geometry", "KinematicModel", "load_kinematic_model", "resolve_model_path"]
 
@@ -299,11 +299,21 @@ def _finish(path: Path, fmt: str, chain: pk.Chain, geometries, mj_model=None) ->
 
 
 def load_kinematic_model(path: str | Path, root: str = "") -> KinematicModel:
-    """Parse a URDF (``.urdf``) or MJCF (``.xml``/``.mjcf``) hand model."""
+    """Parse a URDF (``.urdf``) or MJCF (``.xml``/``.mjcf``) hand model.
+
+    Every file the model names (meshes, includes, asset directories) is first checked to lie
+    inside the model's folder (:func:`dexflow.hands.files.check_model_paths`), so neither
+    trimesh nor MuJoCo opens a file outside it.
+
+    Raises:
+        HandConfigError: the format is unknown, a named file lies outside the model's folder,
+            or the model does not parse.
+    """
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix == ".urdf":
-        return _load_urdf(path, root)
-    if suffix in (".xml", ".mjcf"):
-        return _load_mjcf(path, root)
-    raise HandConfigError(f"{path}: unknown model format '{suffix}'; expected .urdf, .xml or .mjcf")
+    if suffix not in (".urdf", ".xml", ".mjcf"):
+        raise HandConfigError(
+            f"{path}: unknown model format '{suffix}'; expected .urdf, .xml or .mjcf"
+        )
+    check_model_paths(path)
+    return _load_urdf(path, root) if suffix == ".urdf" else _load_mjcf(path, root)

@@ -7,19 +7,32 @@ links, joints tied by a tendon, the human-to-robot scale.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from dexflow.errors import HandConfigError
+import yaml
+
+from dexflow.errors import ConfigError, HandConfigError
 from dexflow.human.keypoints import FINGERS, NUM_KEYPOINTS
 
 __all__ = [
+    "MAX_YAML_ALIASES",
+    "MAX_YAML_NODES",
     "CouplingSpec",
     "FingerSpec",
     "HandSpec",
     "KeypointSpec",
+    "check_yaml_file",
     "load_hand_spec",
 ]
+
+# A YAML file may hold at most this many aliases (``*name``), and expand to at most this many
+# nodes with every alias replaced by what it names. Hand yamls and params.yaml use no alias and
+# a few hundred nodes; a "billion laughs" document (lists of aliases of lists of aliases) of a
+# few hundred bytes expands to billions, which OmegaConf builds one by one.
+MAX_YAML_ALIASES = 100
+MAX_YAML_NODES = 100_000
 
 
 @dataclass
@@ -125,6 +138,92 @@ class HandSpec:
         return [kp.mano for kp in self.keypoints]
 
 
+class _YamlRefused(Exception):
+    """What is wrong with a YAML document :func:`check_yaml_file` refuses."""
+
+
+class _AliasCountingLoader(yaml.SafeLoader):
+    """A safe loader used only to compose (never construct) a document, refusing it at its
+    :data:`MAX_YAML_ALIASES` + 1st alias."""
+
+    def __init__(self, stream: object) -> None:
+        super().__init__(stream)
+        self.aliases = 0
+
+    def compose_node(self, parent: yaml.Node | None, index: object) -> yaml.Node | None:
+        if self.check_event(yaml.AliasEvent):
+            self.aliases += 1
+            if self.aliases > MAX_YAML_ALIASES:
+                raise _YamlRefused(f"more than {MAX_YAML_ALIASES} aliases (*name)")
+        return super().compose_node(parent, index)
+
+
+def _expanded_nodes(node: yaml.Node) -> int:
+    """How many nodes ``node`` is with every alias expanded, counted without expanding: each
+    node's count is memoised, so shared (aliased) nodes cost one visit.
+
+    Raises:
+        _YamlRefused: over :data:`MAX_YAML_NODES`, or an alias inside the node it names.
+    """
+    counts: dict[int, int] = {}
+    open_nodes: set[int] = set()
+
+    def count(current: yaml.Node) -> int:
+        key = id(current)
+        if key in counts:
+            return counts[key]
+        if key in open_nodes:
+            raise _YamlRefused("an alias inside the node it names (a recursive document)")
+        open_nodes.add(key)
+        if isinstance(current, yaml.MappingNode):
+            children = [child for pair in current.value for child in pair]
+        elif isinstance(current, yaml.SequenceNode):
+            children = list(current.value)
+        else:
+            children = []
+        total = 1 + sum(count(child) for child in children)
+        if total > MAX_YAML_NODES:
+            raise _YamlRefused(f"its aliases expand it to more than {MAX_YAML_NODES} nodes")
+        open_nodes.discard(key)
+        counts[key] = total
+        return total
+
+    return count(node)
+
+
+def check_yaml_file(path: str | Path, error: type[ConfigError] = ConfigError) -> None:
+    """Refuse a YAML file whose aliases would make loading it hang or exhaust memory.
+
+    The document is composed (parsed into nodes, an alias pointing at the node it names) and
+    never constructed, which takes time linear in the file's size; it is refused if it has
+    more than :data:`MAX_YAML_ALIASES` aliases, would expand to more than
+    :data:`MAX_YAML_NODES` nodes, names a node inside itself, or nests deeper than Python's
+    recursion limit. Call it before ``OmegaConf.load``, which expands every alias. A syntax
+    error is raised as the ``yaml.YAMLError`` loading would raise (the file opened the way
+    OmegaConf opens it, so the message names the same path).
+
+    Args:
+        path: The YAML file.
+        error: The exception to raise (:class:`HandConfigError` for a hand yaml).
+
+    Raises:
+        ConfigError: (``error``) the document is refused; the message names the file.
+        yaml.YAMLError: the file is not valid YAML.
+    """
+    with open(os.path.abspath(path), encoding="utf-8") as stream:
+        loader = _AliasCountingLoader(stream)
+        try:
+            node = loader.get_single_node()
+            if node is not None:
+                _expanded_nodes(node)
+        except _YamlRefused as exc:
+            raise error(f"{path}: YAML document refused: {exc}") from None
+        except RecursionError:
+            raise error(f"{path}: YAML document refused: nested too deeply") from None
+        finally:
+            loader.dispose()
+
+
 def load_hand_spec(
     name_or_path: str | Path, conf_dir: str | Path | None = None
 ) -> tuple[HandSpec, Path]:
@@ -134,7 +233,8 @@ def load_hand_spec(
         The validated spec and the directory relative model paths are resolved against.
 
     Raises:
-        HandConfigError: the file is missing, has unknown keys or wrong types.
+        HandConfigError: the file is missing, has unknown keys or wrong types, or aliases that
+            would expand it without bound (:func:`check_yaml_file`).
     """
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
@@ -150,6 +250,7 @@ def load_hand_spec(
             raise HandConfigError(f"unknown hand '{name_or_path}'; known: {known} (or a yaml path)")
     if not path.is_file():
         raise HandConfigError(f"{path}: hand yaml not found")
+    check_yaml_file(path, HandConfigError)
     try:
         merged = OmegaConf.merge(OmegaConf.structured(HandSpec), OmegaConf.load(path))
         spec = OmegaConf.to_object(merged)

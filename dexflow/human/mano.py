@@ -13,14 +13,16 @@ palm outwards, the tip last (:data:`dexflow.human.keypoints.KEYPOINT_NAMES`).
 
 from __future__ import annotations
 
-import pickle
+import copyreg
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dexflow.errors import DexflowError
+from dexflow.io.untrusted import RestrictedUnpickler, load_npz, load_pickle
 
 __all__ = ["FINGERTIP_VERTICES", "MANO_TO_DEXFLOW", "ManoModel", "load_mano"]
 
@@ -49,15 +51,30 @@ class _Tolerant:
         raise DexflowError("a chumpy object in the MANO file holds no array ('x')")
 
 
-class _Unpickler(pickle.Unpickler):
-    def find_class(self, module, name):
+def _sparse_class(name: str) -> type | None:
+    """The scipy.sparse matrix class ``name`` (MANO's ``J_regressor``), None for anything else."""
+    import scipy.sparse
+
+    found = getattr(scipy.sparse, name, None)
+    bases = (scipy.sparse.spmatrix, scipy.sparse.sparray)
+    return found if isinstance(found, type) and issubclass(found, bases) else None
+
+
+class _ManoUnpickler(RestrictedUnpickler):
+    """Plain data, plus chumpy classes as :class:`_Tolerant`, scipy.sparse matrix classes, and
+    ``copy_reg._reconstructor(cls, object, state)``, which protocol 0-1 pickles use to build
+    them (it can only build classes this unpickler admits)."""
+
+    def find_extra(self, module: str, name: str) -> Any | None:
         if module.startswith("chumpy"):
             return _Tolerant
         if module.startswith("scipy.sparse"):
-            import scipy.sparse
-
-            return getattr(scipy.sparse, name)
-        return super().find_class(module, name)
+            return _sparse_class(name)
+        if (module, name) == ("copyreg", "_reconstructor"):
+            return copyreg._reconstructor
+        if (module, name) == ("builtins", "object"):
+            return object
+        return None
 
 
 @dataclass
@@ -138,8 +155,12 @@ class ManoModel:
 def load_mano(path: str | Path) -> ManoModel:
     """Read a MANO model file (.pkl, with or without chumpy arrays, or .npz).
 
+    The file is read as untrusted data (:mod:`dexflow.io.untrusted`): a pickle may name numpy,
+    chumpy (kept as inert holders of their arrays) and scipy.sparse matrix classes only.
+
     Raises:
         DexflowError: missing file or arrays, with the names that are missing.
+        UnsafePickleError: the pickle names any other global (it could run code).
     """
     path = Path(path)
     if not path.is_file():
@@ -148,11 +169,11 @@ def load_mano(path: str | Path) -> ManoModel:
             "download it from the MANO website under its licence)"
         )
     if path.suffix == ".npz":
-        with np.load(path, allow_pickle=False) as data:
-            raw = {k: data[k] for k in data.files}
+        raw = load_npz(path)
     else:
-        with open(path, "rb") as handle:
-            raw = _Unpickler(handle, encoding="latin1").load()
+        raw = load_pickle(path, unpickler=_ManoUnpickler)
+    if not isinstance(raw, dict):
+        raise DexflowError(f"{path}: not a MANO model; expected a dict, found {type(raw).__name__}")
     missing = [k for k in _REQUIRED if k not in raw]
     if missing:
         raise DexflowError(f"{path}: not a MANO model; missing arrays {missing}")

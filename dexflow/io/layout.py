@@ -39,6 +39,7 @@ __all__ = [
     "ObjectPaths",
     "StageDir",
     "project_root",
+    "stray_files",
 ]
 
 # The three trajectories the pipeline compares, by label: the baseline, the method before and
@@ -94,6 +95,34 @@ class NoSequencesError(ArtifactError, FileNotFoundError):
 
 def _visible_npz(folder: Path) -> list[Path]:
     return sorted(p for p in folder.glob("*.npz") if not p.name.startswith("."))
+
+
+def stray_files(folder: Path) -> dict[Path, str]:
+    """Files below a sequences folder that are no sequence of the pipeline, with the reason.
+
+    The pipeline (and ``dexflow validate``) read ``<folder>/*.npz`` only: an ``.npz`` in a
+    sub-folder, or any other visible file, would be silently left out, so every stage's summary
+    lists them as dropped by ``data`` and ``dexflow validate`` reports them as invalid. Hidden
+    files (``._name.npz`` resource forks, ``.name.tmp.npz`` left by an interrupted write) are
+    no inputs of anyone's and are not listed.
+
+    Returns:
+        Per file (sorted) why it is not read.
+    """
+    if not folder.is_dir():
+        return {}
+    taken = set(_visible_npz(folder))
+    found = {}
+    for path in sorted(folder.rglob("*")):
+        parts = path.relative_to(folder).parts
+        if not path.is_file() or path in taken or any(s.startswith(".") for s in parts):
+            continue
+        found[path] = (
+            f"in a sub-folder of {folder.name}/: the pipeline reads {folder.name}/*.npz only"
+            if len(parts) > 1
+            else "not an .npz sequence file"
+        )
+    return found
 
 
 @dataclass(frozen=True)

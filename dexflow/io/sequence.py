@@ -23,9 +23,10 @@ from typing import Any
 
 import numpy as np
 
-from dexflow.errors import SequenceFormatError
+from dexflow.errors import DexflowError, SequenceFormatError
 from dexflow.human.keypoints import MIDDLE_MCP, NUM_KEYPOINTS, WRIST
 from dexflow.io.atomic import save_npz
+from dexflow.io.untrusted import MAX_FRAMES, load_npz
 
 __all__ = [
     "HAND_SIZE_RANGE_M",
@@ -346,8 +347,13 @@ def load_sequence(path: str | Path, data_root: str | Path | None = None) -> Sequ
         path: The ``.npz`` file.
         data_root: If given, the object mesh must exist below it.
 
+    Every member's header is checked before any data is inflated (at most
+    :data:`~dexflow.io.untrusted.MAX_FRAMES` frames, sizes that match the archive: see
+    :mod:`dexflow.io.untrusted`); object arrays are refused unread.
+
     Raises:
-        SequenceFormatError: the file is unreadable, misses a required field, or fails a check.
+        SequenceFormatError: the file is unreadable, misses a required field, declares more
+            frames or bytes than allowed, or fails a check.
     """
     path = Path(path)
     if not path.is_file():
@@ -363,17 +369,9 @@ def load_sequence(path: str | Path, data_root: str | Path | None = None) -> Sequ
         )  # fmt: skip
         raise SequenceFormatError(path, "<file>", "a readable .npz archive (np.savez)", found)
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
-    except OSError:
+        arrays = load_npz(path, max_frames=MAX_FRAMES)
+    except (OSError, DexflowError):
         raise
-    except ValueError as exc:
-        if "pickle" not in str(exc):
-            raise SequenceFormatError(path, "<file>", "a readable .npz archive", repr(exc)) from exc
-        raise SequenceFormatError(
-            path, "<file>", "numeric and string arrays only", "an array of Python objects "
-            "(pickled; save strings as np.array('text'), not dtype=object)",
-        ) from exc  # fmt: skip
     except Exception as exc:  # zipfile, zlib, header errors: the archive is damaged
         raise SequenceFormatError(
             path, "<file>", "a readable .npz archive", f"a damaged one ({exc!r})"
