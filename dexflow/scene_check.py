@@ -43,6 +43,15 @@ __all__ = ["SETTLE_STEPS", "check_scenes"]
 SETTLE_STEPS = 500
 _CUBE_M = 0.04
 _REPLAY_FRAMES = 10
+# What to do about the engines' own errors, by a clue in their message.
+_FIXES = {
+    "no decoder found for mesh": "fix: MuJoCo reads .obj, .stl and .msh meshes; convert that "
+    "mesh (e.g. with trimesh) and name the new file in the model",
+    "differ from the kinematic model": "fix: the hand yaml and its model file must describe "
+    "the same hand (`dexflow hand init` writes a matching yaml)",
+    "are not joints of": "fix: name the model's joints in the hand yaml (`dexflow hand check` "
+    "lists them)",
+}
 _UNSTABLE = {
     mujoco.mjtWarning.mjWARN_BADQACC: "accelerations",
     mujoco.mjtWarning.mjWARN_BADQVEL: "velocities",
@@ -130,6 +139,8 @@ def check_scenes(
         write_convex_obj(cube, [trimesh.creation.box(extents=(_CUBE_M,) * 3)])
 
         def fail(scene: str, problem: str) -> HandConfigError:
+            fixes = [fix for clue, fix in _FIXES.items() if clue in problem]
+            problem = "; ".join([" ".join(problem.split()), *fixes])
             return HandConfigError(f"hand '{hand.spec.name}': scene '{scene}': {problem}")
 
         def build(scene: str, make):

@@ -165,7 +165,8 @@ def test_a_hand_the_engines_cannot_load_stops_the_stage_once(tmp_path, monkeypat
     assert len(failures) == 1 and "hand 'plyhand'" in failures[0], failures
     assert "palm.ply" in failures[0] and "retry" not in failures[0]
     assert not (project / "data" / "simulate" / "baseline" / "summary.json").exists()
-    with pytest.raises(HandConfigError, match=r"scene 'grasp test \(MuJoCo\)'.*palm\.ply"):
+    with pytest.raises(HandConfigError, match=r"scene 'grasp test \(MuJoCo\)'.*palm\.ply.*fix: "
+                       r"MuJoCo reads \.obj, \.stl and \.msh meshes"):  # fmt: skip
         check_scenes(load_hand(project / "conf" / "hand" / "plyhand.yaml"))
 
 
