@@ -532,3 +532,66 @@ def test_a_destination_meshes_folder_linked_elsewhere_is_refused(tmp_path):
     with pytest.raises(DatasetLayoutError, match=f"leads out of {dst}"):
         write_raw_sequence(raw, dst, ConvertOptions())
     assert not list((tmp_path / "elsewhere").iterdir())
+
+
+# ------------------------------------------------------------ what the first probe still found
+
+
+def test_a_pickled_array_asking_for_gigabytes_up_front_is_refused(tmp_path):
+    """numpy's ``_reconstruct`` allocates the shape it is given before any byte is read: a
+    1 KB pickle asking for (30M, 21, 3) is refused without allocating."""
+
+    class _Bomb:
+        def __reduce__(self):
+            return np._core.multiarray._reconstruct, (np.ndarray, (30_000_000, 21, 3), b"b")
+
+    path = tmp_path / "bomb.pkl"
+    path.write_bytes(pickle.dumps({"handJoints3D": _Bomb()}, protocol=2))
+    assert path.stat().st_size < 1024
+    tracemalloc.start()
+    with pytest.raises(SequenceFormatError, match=r"shape \(30000000, 21, 3\) allocated up front"):
+        load_pickle(path)
+    assert tracemalloc.get_traced_memory()[1] < 16 * 1024**2
+    tracemalloc.stop()
+    arrays = {"a": np.arange(12.0).reshape(3, 4), "b": np.zeros((0, 3)), "c": np.float32(2)}
+    plain = tmp_path / "plain.pkl"
+    plain.write_bytes(pickle.dumps(arrays, protocol=4))
+    _assert_same(load_pickle(plain), arrays)  # numpy's own pickles still read
+
+
+def test_ho3d_frame_numbers_may_not_span_more_than_max_frames(tmp_path):
+    """A stray frame file numbered past MAX_FRAMES beside a dozen real ones would make a
+    sequence of a million empty frames."""
+    src = tmp_path / "src"
+    _write_ho3d(src / "subject" / "take", _hand(), _poses())
+    _box(src / "models" / "025_mug" / "textured_simple.obj")
+    meta = src / "subject" / "take" / "meta"
+    stray = meta / f"{MAX_FRAMES + 5}.pkl"
+    stray.write_bytes(next(meta.glob("*.pkl")).read_bytes())
+    report = convert("ho3d", src, tmp_path / "out")
+    error = report["sequences"]["subject_take"]["error"]
+    assert str(meta) in error and f"expected at most {MAX_FRAMES}" in error, error
+    assert not list((tmp_path / "out").rglob("*.npz"))
+
+
+def test_a_source_file_linked_out_of_the_source_is_refused(tmp_path):
+    src, outside = tmp_path / "gen", tmp_path / "elsewhere"
+    _box(src / "box.obj")
+    outside.mkdir()
+    np.savez(
+        outside / "seq.npz", keypoints=_hand(), obj_pose=_poses(), obj_mesh="box.obj", fps=30.0
+    )
+    (src / "linked.npz").symlink_to(outside / "seq.npz")
+    report = convert("generic", src, tmp_path / "out")
+    error = report["sequences"]["linked"]["error"]
+    assert str(src / "linked.npz") in error and "field '<file>'" in error, error
+
+
+@pytest.mark.parametrize("fps", [np.array("thirty"), np.array([30.0, 30.0])])
+def test_an_fps_that_is_not_one_number_is_named(tmp_path, fps):
+    path = tmp_path / "seq.npz"
+    seq = make_sequence()
+    np.savez(path, keypoints=seq.keypoints, obj_pose=seq.obj_pose, obj_mesh="m.obj",
+             obj_name="box", fps=fps)  # fmt: skip
+    with pytest.raises(SequenceFormatError, match=r"field 'fps': expected one number > 0"):
+        load_sequence(path)

@@ -244,6 +244,19 @@ def _frame_number(path: Path, pattern: str) -> int:
     return int(text)
 
 
+def _frame_span(frames: list[int], folder: Path, first: int) -> int:
+    """How many frames the numbered files from ``first`` to the last one span (missing numbers
+    become frames without a hand); at most :data:`~dexflow.io.untrusted.MAX_FRAMES`, so that a
+    file numbered 1100000 beside twelve small ones cannot make a 1.1M-frame sequence."""
+    span = max(frames) - first + 1
+    if span > MAX_FRAMES:
+        raise DatasetLayoutError(
+            f"{folder}: frame files numbered {first} to {max(frames)} span {span} frames; "
+            f"expected at most {MAX_FRAMES} (a stray file with a large number?)"
+        )
+    return span
+
+
 def _visible(paths) -> list[Path]:
     """Without hidden files (macOS's ``._*`` resource forks, editors' swap files)."""
     return sorted(p for p in paths if not p.name.startswith("."))
@@ -328,7 +341,7 @@ def _read_dexycb(src: Path, meta_path: Path, models: Path, options: ConvertOptio
     if not labels:
         raise DatasetLayoutError(f"{seq_dir / serial}: no labels_*.npz files")
     frames = [_frame_number(p, "labels_<n>.npz") for p in labels]
-    n_frames = max(frames) + 1
+    n_frames = _frame_span(frames, cam_dir, 0)
     kp = np.full((n_frames, 21, 3), np.nan)
     pose = np.full((n_frames, 4, 4), np.nan)
     template = np.zeros(n_frames, dtype=bool)
@@ -401,7 +414,8 @@ def _read_ho3d(seq_dir: Path, models: Path, options: ConvertOptions) -> RawSeque
     if not files:
         raise DatasetLayoutError(f"{seq_dir / 'meta'}: no <frame>.pkl files")
     frames = [_frame_number(p, "<n>.pkl") for p in files]
-    first, n_frames = min(frames), max(frames) - min(frames) + 1
+    first = min(frames)
+    n_frames = _frame_span(frames, seq_dir / "meta", first)
     kp = np.full((n_frames, 21, 3), np.nan)
     pose = np.full((n_frames, 4, 4), np.nan)
     template = np.zeros(n_frames, dtype=bool)
@@ -470,6 +484,7 @@ def _grab(src: Path, options: ConvertOptions) -> Iterator[SourceSequence]:
 
 def _read_grab(src: Path, path: Path, options: ConvertOptions) -> list[RawSequence]:
     """One GRAB file: a sequence per hand side asked for."""
+    _inside(src, path.relative_to(src).as_posix(), path, "<file>")  # a link out of SRC
     sides = ("right", "left") if options.side == "both" else (options.side,)
     out = []
     with _reading(path):
@@ -528,6 +543,7 @@ def _numbers(path: Path, table, columns: list[str]) -> np.ndarray:
 
 def _read_generic(src: Path, path: Path, options: ConvertOptions) -> RawSequence:
     """One generic sequence (``<name>.npz``, or ``<name>.csv`` and ``<name>.json``)."""
+    _inside(src, path.relative_to(src).as_posix(), path, "<file>")  # a link out of SRC
     if path.suffix == ".npz":
         with _reading(path):
             fields = load_npz(path, max_frames=MAX_FRAMES)

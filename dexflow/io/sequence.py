@@ -383,12 +383,19 @@ def load_sequence(path: str | Path, data_root: str | Path | None = None) -> Sequ
     def text(key: str, default: str) -> str:
         return str(arrays[key]) if key in arrays else default
 
+    try:
+        fps = float(arrays["fps"])
+    except (TypeError, ValueError):
+        found = np.asarray(arrays["fps"])
+        raise SequenceFormatError(
+            path, "fps", "one number > 0", f"{found.dtype} of shape {found.shape}"
+        ) from None
     seq = Sequence(
         keypoints=arrays["keypoints"],
         obj_pose=arrays["obj_pose"],
         obj_mesh=text("obj_mesh", ""),
         obj_name=text("obj_name", ""),
-        fps=float(arrays["fps"]),
+        fps=fps,
         side=text("side", "right"),
         source=text("source", "unknown"),
         valid=arrays.get("valid"),

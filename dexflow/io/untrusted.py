@@ -76,6 +76,7 @@ _SAFE_GLOBALS = frozenset(
         *(("builtins", name) for name in ("set", "frozenset", "complex", "list", "tuple", "dict")),
     }
 )
+_RECONSTRUCT_MAX_ITEMS = 1  # numpy pickles reconstruct (0,) and fill it from the bytes
 _LATIN1 = ("latin1", "latin-1", "iso-8859-1", "iso8859-1")
 
 
@@ -130,9 +131,32 @@ class RestrictedUnpickler(pickle.Unpickler):
             return extra
         if (module3, name3) == ("_codecs", "encode"):
             return _latin1_bytes
+        if name3 == "_reconstruct" and (module3, name3) in _SAFE_GLOBALS:
+            return self._bounded_reconstruct(super().find_class(module3, name3))
         if (module3, name3) in _SAFE_GLOBALS:
             return super().find_class(module3, name3)
         raise UnsafePickleError(self.source, f"{module3}.{name3}", self.field)
+
+    def _bounded_reconstruct(self, reconstruct: Any) -> Any:
+        """numpy's ``_reconstruct(subtype, shape, dtype)``, which allocates ``shape`` before the
+        array's bytes are read: numpy's own pickles call it with shape ``(0,)`` and fill the
+        array from the bytes that follow, so a larger shape is a 1 KB file asking for
+        gigabytes and is refused."""
+
+        def bounded(subtype: Any, shape: Any, dtype: Any) -> Any:
+            dims = tuple(int(n) for n in np.atleast_1d(shape))
+            count = math.prod(dims)
+            if count > _RECONSTRUCT_MAX_ITEMS:
+                raise SequenceFormatError(
+                    self.source,
+                    self.field,
+                    f"numpy arrays pickled as numpy writes them (reconstructed empty, at most "
+                    f"{_RECONSTRUCT_MAX_ITEMS} item, then filled from the file's bytes)",
+                    f"an array of shape {dims} allocated up front",
+                )
+            return reconstruct(subtype, shape, dtype)
+
+        return bounded
 
 
 def load_pickle(
