@@ -194,8 +194,9 @@ def _project(tmp_path: Path, name: str, build) -> Path:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("shape", sorted(PUBLIC_SHAPES))
+@pytest.mark.parametrize("shape", sorted(set(PUBLIC_SHAPES) - {"world_rooted_left"}))
 def test_public_shaped_hand_runs_every_stage(tmp_path, shape):
+    """(The left world-rooted hand runs every stage through `dvc repro` below.)"""
     project = _project(tmp_path, shape, PUBLIC_SHAPES[shape])
     params = load_params(project / "params.yaml")
     layout = Layout.of(params.data.root, root=project)
@@ -234,7 +235,7 @@ def test_public_shaped_hand_through_dvc_repro(tmp_path):
     assert "contact" in dag and "replay" not in dag  # no replay while the grip is off
     run("dvc", "repro")
     out = run(sys.executable, "-m", "dexflow.cli", "hand", "check", "world_rooted_left")
-    assert "physics (params.yaml, engines mujoco)" in out and out.endswith("ok\n")
+    assert "physics (params.yaml, engines mujoco)" in out and "\nok\n" in out
     for stage in ("simulate/refine", "replay/refine", "replay/retarget"):
         done = json.loads((project / "data" / stage / "summary.json").read_text())
         assert done["num_ok"] == done["num_sequences"] == 2, stage
