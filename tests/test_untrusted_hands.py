@@ -27,8 +27,9 @@ from dexflow.io.layout import Layout, StageDir, project_root
 from dexflow.io.sequence import save_sequence
 from dexflow.objects.mesh import MESH_WARNING, load_mesh, write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
-from dexflow.params import PipelineParams, RunParams
+from dexflow.params import PipelineParams
 from tests.conftest import make_sequence
+from tests.test_bad_input import _params as _small_params
 
 ROOT = project_root()
 BOX = trimesh.creation.box(extents=(0.06, 0.04, 0.08))
@@ -348,14 +349,7 @@ def test_scale_align_lists_the_flip_of_an_object_as_a_warning(tmp_path):
     (root / "meshes").mkdir(parents=True)
     _inverted(BOX).export(root / "meshes" / "box.obj")
     save_sequence(StageDir(root).sequence("a"), make_sequence(10), data_root=root)
-    params = PipelineParams()
-    params.hand, _ = load_hand_spec("allegro")
-    params.scale_align.sdf_spacing_m = 0.004
-    params.scale_align.surface_samples = 256
-    params.scale_align.convex.max_hulls = 4
-    params.scale_align.convex.preprocess_resolution = 10
-    params.scale_align.convex.mcts_iterations = 10
-    params.run = RunParams("sequential", 1)
+    params = _small_params()  # allegro, a coarse grid, few convex parts, one process
     summary = run_scale_align(params, Layout.of(root, root=tmp_path / "project"))
     assert summary["num_ok"] == 1
     (entry,) = summary["objects"].values()
