@@ -38,7 +38,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from dexflow.errors import HandConfigError
 from dexflow.hands.files import urdf_mesh_path
@@ -113,13 +112,6 @@ def _moments(values: np.ndarray) -> str:
 # ---------------------------------------------------------------------------------------- URDF
 
 
-def _urdf_origin(element: ET.Element | None) -> tuple[np.ndarray, np.ndarray]:
-    origin = element.find("origin") if element is not None else None
-    xyz = [float(v) for v in origin.get("xyz", "0 0 0").split()] if origin is not None else [0] * 3
-    rpy = [float(v) for v in origin.get("rpy", "0 0 0").split()] if origin is not None else [0] * 3
-    return np.asarray(xyz, dtype=float), Rotation.from_euler("xyz", rpy).as_matrix()
-
-
 def _read_inertial(link: ET.Element) -> tuple[float, np.ndarray] | None:
     """Mass and (3, 3) tensor of a URDF link's ``<inertial>`` (None without one)."""
     inertial = link.find("inertial")
@@ -191,9 +183,9 @@ def _parents_first(root: ET.Element) -> list[ET.Element]:
 
 def _repair_urdf(
     source: Path, massless_mass_kg: float, massless_inertia_kgm2: float
-) -> tuple[ET.ElementTree, list[str], bool]:
-    """The URDF's tree with every repair applied; what was repaired; whether anything must
-    change for the engines to load it (mesh paths alone need not)."""
+) -> tuple[ET.ElementTree, list[str]]:
+    """The URDF's tree with every repair applied (and mesh paths made absolute), and what was
+    repaired: nothing means the engines can load the file as it is."""
     try:
         tree = ET.parse(source)
     except (OSError, ET.ParseError) as exc:
@@ -236,7 +228,7 @@ def _repair_urdf(
                 continue
             if path.is_file():  # (collision meshes are checked when the hand is loaded)
                 mesh.set("filename", str(path.resolve()))
-    return tree, notes, bool(notes)
+    return tree, notes
 
 
 def _rename_link(root: ET.Element, old: str, new: str) -> None:
@@ -287,8 +279,8 @@ def physics_urdf(
             from dexflow.hands.export import export_urdf
 
             model = export_urdf(hand.model, folder / f"{hand.spec.name}_export.urdf")
-        tree, notes, changed = _repair_urdf(model, massless_mass_kg, massless_inertia_kgm2)
-        if changed or model != source:
+        tree, notes = _repair_urdf(model, massless_mass_kg, massless_inertia_kgm2)
+        if notes or model != source:
             ET.indent(tree)
             text = ET.tostring(tree.getroot(), encoding="unicode")
             header = (
