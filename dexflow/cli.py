@@ -73,7 +73,7 @@ def _cmd_params(args: argparse.Namespace) -> int:
 
 def _cmd_validate(args: argparse.Namespace) -> int:
     from dexflow.errors import DexflowError
-    from dexflow.io.layout import stray_files
+    from dexflow.io.layout import stray_files, visible_npz
     from dexflow.io.sequence import load_sequence
 
     paths, strays = [], {}
@@ -81,7 +81,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
         p = Path(p)
         if p.is_dir():  # the files the pipeline reads: <data root>/sequences/*.npz
             folder = p / "sequences" if (p / "sequences").is_dir() else p
-            paths += sorted(f for f in folder.glob("*.npz") if not f.name.startswith("."))
+            paths += visible_npz(folder)
             strays |= stray_files(folder)
         else:
             paths.append(p)

@@ -40,6 +40,7 @@ __all__ = [
     "StageDir",
     "project_root",
     "stray_files",
+    "visible_npz",
 ]
 
 # The three trajectories the pipeline compares, by label: the baseline, the method before and
@@ -93,7 +94,9 @@ class NoSequencesError(ArtifactError, FileNotFoundError):
     """A stage directory (or the data root) holds no ``sequences/*.npz``."""
 
 
-def _visible_npz(folder: Path) -> list[Path]:
+def visible_npz(folder: Path) -> list[Path]:
+    """The sequence files of a sequences folder, sorted: ``*.npz`` at its top, hidden ones left
+    out (``._name.npz`` resource forks, ``.name.*.tmp.npz`` from an interrupted write)."""
     return sorted(p for p in folder.glob("*.npz") if not p.name.startswith("."))
 
 
@@ -111,7 +114,7 @@ def stray_files(folder: Path) -> dict[Path, str]:
     """
     if not folder.is_dir():
         return {}
-    taken = set(_visible_npz(folder))
+    taken = set(visible_npz(folder))
     found = {}
     for path in sorted(folder.rglob("*")):
         parts = path.relative_to(folder).parts
@@ -155,7 +158,7 @@ class StageDir:
         Raises:
             NoSequencesError: there is none.
         """
-        files = _visible_npz(self.sequences_dir)
+        files = visible_npz(self.sequences_dir)
         if not files:
             raise NoSequencesError(
                 f"{self.sequences_dir}: no *.npz sequence files (has the stage that writes them "
@@ -165,7 +168,7 @@ class StageDir:
 
     def names(self) -> list[str]:
         """The sequence names present (empty if none)."""
-        return [p.stem for p in _visible_npz(self.sequences_dir)]
+        return [p.stem for p in visible_npz(self.sequences_dir)]
 
     # Stage scale_align's directory also holds the objects.
     def object_key(self, obj_mesh: str) -> str:
