@@ -38,9 +38,11 @@ import fcntl
 import hashlib
 import logging
 import os
+import select
 import signal
 import sys
 import tempfile
+import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -130,7 +132,12 @@ def _stops_with_parent() -> Iterator[None]:
     """While the stage runs, stop (SIGTERM) when the process that started it dies: a killed
     ``dvc repro`` leaves no stage running on as an orphan (Linux; elsewhere only the SIGTERM
     part). SIGTERM ends the stage the way Ctrl-C does: its worker processes are stopped and the
-    finished items stay recorded for the next run. Both are undone afterwards."""
+    finished items stay recorded for the next run. Both are undone afterwards.
+
+    DVC starts a stage as ``/bin/sh -c <cmd>``, and the shell outlives a killed ``dvc repro``
+    (it waits for its child). So the kernel's parent-death signal covers the direct parent only,
+    and a thread watches the launcher above a ``sh -c`` parent (:func:`_launcher_pid`) through a
+    pidfd, which cannot mistake a new process that reuses the pid for the launcher."""
 
     def interrupt(signum, frame):
         raise KeyboardInterrupt(f"signal {signum}")
@@ -139,12 +146,63 @@ def _stops_with_parent() -> Iterator[None]:
     prctl = ctypes.CDLL(None).prctl if sys.platform.startswith("linux") else None
     if prctl is not None:
         prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    done = threading.Event()
+    watcher = _watch_launcher(done)
     try:
         yield
     finally:
+        done.set()
+        if watcher is not None:
+            watcher.join()
         if prctl is not None:
             prctl(_PR_SET_PDEATHSIG, 0, 0, 0, 0)
         signal.signal(signal.SIGTERM, previous)
+
+
+_SHELLS = frozenset({"sh", "dash", "bash", "zsh", "ksh", "busybox"})
+
+
+def _launcher_pid() -> int | None:
+    """The pid of the process that launched this one through a shell's ``-c`` (DVC's
+    ``/bin/sh -c``), or None when the parent is not such a shell or ``/proc`` cannot tell."""
+    parent = os.getppid()
+    try:
+        argv = Path(f"/proc/{parent}/cmdline").read_bytes().split(b"\0")
+        stat = Path(f"/proc/{parent}/stat").read_text()
+    except OSError:
+        return None
+    if len(argv) < 2 or Path(argv[0].decode(errors="replace")).name not in _SHELLS:
+        return None
+    if argv[1] != b"-c":
+        return None
+    # Fields after the command name, which is in parentheses and may itself hold spaces.
+    grandparent = int(stat[stat.rindex(")") + 2 :].split()[1])
+    return grandparent if grandparent > 1 else None
+
+
+def _watch_launcher(done: threading.Event) -> threading.Thread | None:
+    """Start a thread that sends this process SIGTERM when the launcher above a ``sh -c``
+    parent exits, until ``done`` is set; None where there is nothing to watch."""
+    pid = _launcher_pid()
+    if pid is None or not hasattr(os, "pidfd_open"):
+        return None
+    try:
+        handle = os.pidfd_open(pid)
+    except OSError:  # gone already, or a kernel without pidfds
+        return None
+
+    def watch() -> None:
+        try:
+            while not done.is_set():
+                if select.select([handle], [], [], 0.5)[0]:
+                    os.kill(os.getpid(), signal.SIGTERM)
+                    return
+        finally:
+            os.close(handle)
+
+    thread = threading.Thread(target=watch, name="dexflow-launcher-watch", daemon=True)
+    thread.start()
+    return thread
 
 
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h

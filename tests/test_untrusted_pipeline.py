@@ -93,6 +93,39 @@ def test_a_second_run_of_a_stage_stops_while_the_first_holds_it(tmp_path):
         pass
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="watches through /proc")
+def test_a_stage_under_sh_c_stops_when_its_launcher_is_killed(tmp_path):
+    """DVC runs a stage as `/bin/sh -c <cmd>`, and the shell outlives a SIGKILLed launcher, so
+    the parent-death signal alone never reaches the stage: the stage watches the launcher."""
+    marker = tmp_path / "stopped"
+    stage = (
+        "import time, pathlib\n"
+        "from dexflow.runner import _stops_with_parent\n"
+        "try:\n"
+        "    with _stops_with_parent():\n"
+        "        pathlib.Path(r'%s').with_suffix('.started').touch()\n"
+        "        time.sleep(60)\n"
+        "except KeyboardInterrupt as stop:\n"
+        "    pathlib.Path(r'%s').write_text(str(stop))\n"
+    ) % (marker, marker)
+    (tmp_path / "stage.py").write_text(stage)
+    launcher = subprocess.Popen(
+        [sys.executable, "-c", "import subprocess, sys, time; "
+         f"subprocess.Popen('{sys.executable} stage.py', shell=True); time.sleep(60)"],
+        cwd=tmp_path,
+    )  # fmt: skip
+    deadline = time.monotonic() + 60
+    while not marker.with_suffix(".started").exists():
+        assert time.monotonic() < deadline, "the stage did not start"
+        time.sleep(0.1)
+    launcher.kill()
+    launcher.wait()
+    deadline = time.monotonic() + 10
+    while not marker.exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert marker.exists() and marker.read_text() == "signal 15"
+
+
 @pytest.mark.slow
 def test_a_killed_dvc_repro_leaves_no_stage_or_worker_running(tmp_path):
     """SIGKILL to `dvc repro` while stage scale_align runs with two workers: within a few
