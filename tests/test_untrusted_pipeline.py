@@ -98,16 +98,16 @@ def test_a_stage_under_sh_c_stops_when_its_launcher_is_killed(tmp_path):
     """DVC runs a stage as `/bin/sh -c <cmd>`, and the shell outlives a SIGKILLed launcher, so
     the parent-death signal alone never reaches the stage: the stage watches the launcher."""
     marker = tmp_path / "stopped"
-    stage = (
-        "import time, pathlib\n"
-        "from dexflow.runner import _stops_with_parent\n"
-        "try:\n"
-        "    with _stops_with_parent():\n"
-        "        pathlib.Path(r'%s').with_suffix('.started').touch()\n"
-        "        time.sleep(60)\n"
-        "except KeyboardInterrupt as stop:\n"
-        "    pathlib.Path(r'%s').write_text(str(stop))\n"
-    ) % (marker, marker)
+    stage = f"""import time, pathlib
+from dexflow.runner import _stops_with_parent
+marker = pathlib.Path({str(marker)!r})
+try:
+    with _stops_with_parent():
+        marker.with_suffix(".started").touch()
+        time.sleep(60)
+except KeyboardInterrupt as stop:
+    marker.write_text(str(stop))
+"""
     (tmp_path / "stage.py").write_text(stage)
     launcher = subprocess.Popen(
         [sys.executable, "-c", "import subprocess, sys, time; "
