@@ -18,12 +18,15 @@ if TYPE_CHECKING:
     from dexflow.objects.sdf import SignedDistanceGrid
 
 __all__ = [
+    "CD_CAP_M",
     "FRAME_CHUNK",
+    "capped_contact_distance",
     "contact_counts",
     "contact_distance",
     "finger_minimum",
     "fingertip_speeds",
     "finite_mean",
+    "flicker_reduction",
     "frame_chunks",
     "hand_object_depths",
     "penetration_depth",
@@ -162,6 +165,30 @@ def contact_distance(per_finger: np.ndarray, contact: np.ndarray) -> np.ndarray:
     return np.where(count > 0, clipped.sum(axis=1) / np.maximum(count, 1), np.nan)
 
 
+CD_CAP_M = 0.01  # BODex / DexGraspBench: a finger farther than 1 cm counts as 1 cm
+
+
+def capped_contact_distance(per_finger: np.ndarray, grasp: np.ndarray) -> np.ndarray:
+    """BODex's contact distance (DexGraspBench's ``contact_dist``), per frame of a grasp.
+
+    Every finger of the hand counts, touching or not: its smallest signed distance to the
+    object, clipped to ``[0, CD_CAP_M]`` (inside counts as 0, farther than 1 cm as 1 cm), then
+    the mean over the fingers. A grasp whose fingers all rest on the surface scores 0; a finger
+    that misses the object adds ``CD_CAP_M / F``. BODex evaluates one static grasp; a sequence's
+    grasp frames are those where stage contact finds any finger in contact (``grasp``), and the
+    other frames are NaN.
+
+    Args:
+        per_finger: (T, F) each finger's smallest signed distance to the object (m).
+        grasp: (T,) the frames that are a grasp.
+
+    Returns:
+        (T,) contact distance (m), NaN outside the grasp.
+    """
+    capped = np.clip(per_finger, 0.0, CD_CAP_M).mean(axis=1)
+    return np.where(np.asarray(grasp, dtype=bool), capped, np.nan)
+
+
 def state_flicker(states: np.ndarray, fps: float) -> float:
     """State changes per finger per second of (T, F) boolean states.
 
@@ -173,6 +200,19 @@ def state_flicker(states: np.ndarray, fps: float) -> float:
         return 0.0
     changes = np.count_nonzero(states[1:] != states[:-1])
     return float(changes / states.shape[1] / ((len(states) - 1) / fps))
+
+
+def flicker_reduction(before: float, after: float) -> float:
+    """The share of the flicker ``before`` that ``after`` removes: ``1 - after / before``.
+
+    Both are :func:`state_flicker` values (state changes per finger per second) of the same
+    frames, fingers and sequences, so the share is also that of the state changes removed.
+    Negative where ``after`` flickers more; NaN where ``before`` is 0 or either is NaN (nothing
+    to remove: no share is defined).
+    """
+    if not before > 0 or not np.isfinite(after):
+        return float("nan")
+    return float(1.0 - after / before)
 
 
 def contact_counts(predicted: np.ndarray, truth: np.ndarray) -> dict[str, int]:

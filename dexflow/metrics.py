@@ -12,34 +12,46 @@ Definitions (per sequence; the aggregate is the mean over sequences unless said 
   MANO tips 4, 8, 12, 16, 20): how far the robot's fingertips are from the human's.
 - ``time_aligned_cd_mm``: per observed frame, the symmetric Chamfer distance between the human
   keypoint set and the robot keypoint set, ``½ (mean_a min_b |a - b| + mean_b min_a |a - b|)``,
-  averaged over frames. It compares shapes at the same instant without trusting the
-  correspondence; identical trajectories give 0.
+  averaged over frames. dexflow's own measure, not the paper's "time-aligned CD" (whose
+  definition is not published): wherever the robot's keypoints are nearer to their own human
+  keypoints than to any other (errors below half the keypoint spacing, which holds on every
+  dataset tried), each nearest neighbour is the matched keypoint and it equals
+  ``keypoint_error_mm``. It differs only where the keypoints are confused.
 - ``velocity_kl``: KL divergence between the histograms of human and robot fingertip speeds
   over consecutive observed frames (:func:`dexflow.measures.velocity_kl`; the aggregate pools
   the speeds of all sequences). Identical trajectories give 0.
 - ``rms_acc``: root-mean-square joint acceleration (rad/s²) of the hand joints, central second
   differences at the sequence's fps (:func:`dexflow.measures.rms_acceleration`).
-- ``pd_mm`` (penetration depth): per frame the depth of the deepest hand surface point inside
-  the object (signed distance grid; 0 if none), averaged over frames
+- ``pd_mm`` (penetration depth, BODex's ``ho_pene`` per frame): per frame the depth of the
+  deepest point of the hand's collision geometry inside the object (every collision shape,
+  forearm and palm included, sampled densely: :func:`dexflow.hands.robot.measurement_hand`;
+  signed distance to the object's mesh; 0 if none), averaged over frames
   (:func:`dexflow.measures.penetration_depth`, the same definition stage simulate's
   penetration rule uses). ``pd_max_mm``: the deepest of any frame (the aggregate is the
   largest over sequences, not the mean).
-- ``cd_mm`` (contact distance): per frame and finger in contact (stage contact's final
-  states), the finger's smallest distance to the object surface clipped at 0, averaged over the
-  fingers in contact, then over frames with any contact.
-- ``spd_mm`` (self-penetration): per frame the depth of the deepest hand surface point inside the
-  collision shape of a non-adjacent link, averaged over frames. Adjacent = a link and its
-  nearest ancestor that has collision geometry; pairs already overlapping at the hand's zero
-  pose are excluded too (as MoveIt's setup assistant does: they overlap by design).
-- ``fvr`` (feasibility violation rate; the paper does not define FVR, this is dexflow's
-  definition): fraction of frames with penetration above ``pd_violation_m``, self-penetration
-  above ``spd_violation_m`` or a joint outside its limits by more than ``limit_tolerance_rad``.
+- ``cd_mm`` (contact distance, BODex's ``contact_dist``): per grasp frame (stage contact finds
+  any finger in contact), **every** finger's smallest distance to the object surface clipped
+  to [0, 10 mm], averaged over the fingers, then over the grasp frames
+  (:func:`dexflow.measures.capped_contact_distance`). ``cd_contact_mm`` (dexflow's variant):
+  the same averaged over the fingers in contact only, unclipped above
+  (:func:`dexflow.measures.contact_distance`).
+- ``spd_mm`` (self-penetration, BODex's ``self_pene`` per frame): per frame the depth of the
+  deepest point of the hand's collision geometry (every shape, as for PD) inside the collision
+  shape of a non-adjacent link, averaged over frames. Adjacent = a link and its nearest
+  ancestor that has collision geometry (MuJoCo, where BODex measures it, excludes
+  parent-child pairs likewise); pairs already overlapping at the hand's zero pose are excluded
+  too (as MoveIt's setup assistant does: they overlap by design).
+- ``fvr`` (feasibility violation rate; **dexflow's definition**: the paper does not define
+  FVR, so this number is not the paper's and the reports do not print the two side by side):
+  fraction of frames with penetration above ``pd_violation_m``, self-penetration above
+  ``spd_violation_m`` or a joint outside its limits by more than ``limit_tolerance_rad``.
 - ``ssr`` (%): simulation success rate, the share of sequences that stage simulate found to
-  hold the object, by its first engine (``simulate.engines``; MuJoCo by default) and the paper's
-  criterion (contact kept under all six pushes, from a frame within the penetration tolerance,
-  robust under ``simulate.perturbations``); ``ssr_bench`` (%): the DexGraspBench criterion
-  (< 5 cm, < 15° under all six). ``reports/metrics/simulate_<method>.json`` names the engines
-  and has each engine's SSRs.
+  hold the object with the paper's protocol (the object's weight along each of six directions
+  in turn, contact kept to the end of each; from a frame within the penetration tolerance,
+  robust under ``simulate.perturbations``); with two engines the conservative one (held in
+  both). ``ssr_bench`` (%): DexGraspBench's push test and criterion (< 5 cm, < 15° under all
+  six pushes; MuJoCo). ``reports/metrics/simulate_<method>.json`` names the engines and has
+  each engine's SSRs.
 - ``contact.flicker_raw`` / ``contact.flicker_final``: contact state changes per finger per
   second before and after frame-to-frame inference (method-independent: the contact stage runs
   on the DexFlow trajectory).
@@ -58,7 +70,7 @@ import torch
 from scipy.spatial import ConvexHull
 
 from dexflow.hands.files import staged_spec
-from dexflow.hands.robot import RobotHand, cached_hand
+from dexflow.hands.robot import RobotHand, cached_hand, measurement_hand
 from dexflow.human.keypoints import FINGERS
 from dexflow.io.artifacts import (
     MetricFrames,
@@ -72,6 +84,7 @@ from dexflow.io.atomic import atomic_path
 from dexflow.io.layout import TRAJECTORIES, Layout
 from dexflow.io.sequence import load_sequence
 from dexflow.measures import (
+    capped_contact_distance,
     contact_counts,
     contact_distance,
     fingertip_speeds,
@@ -247,9 +260,11 @@ def trajectory_metrics(
     chamfer = np.full(len(q), np.nan)
     if observed.any():
         chamfer[observed] = chamfer_per_frame(human[observed], robot[observed])
-    pd, per_finger = hand_object_depths(hand, q, obj_pose, sdf)
-    cd = contact_distance(per_finger, contact)
-    spd = self_collision(hand)(q)
+    measured = measurement_hand(hand)  # every collision shape, forearm and palm included
+    pd, per_finger = hand_object_depths(measured, q, obj_pose, sdf)
+    cd = capped_contact_distance(per_finger, np.asarray(contact, dtype=bool).any(axis=1))
+    cd_contact = contact_distance(per_finger, contact)
+    spd = self_collision(measured)(q)
     joints = q[:, 6:]
     lower, upper = hand.lower.numpy()[6:], hand.upper.numpy()[6:]
     tol = params.limit_tolerance_rad
@@ -266,6 +281,7 @@ def trajectory_metrics(
         "pd_mm": _mean_mm(pd),
         "pd_max_mm": float(pd.max() * 1000) if len(pd) else float("nan"),
         "cd_mm": _mean_mm(cd),
+        "cd_contact_mm": _mean_mm(cd_contact),
         "spd_mm": _mean_mm(spd),
         "fvr": float(violation.mean()),
     }
@@ -402,7 +418,8 @@ def _write_tables(ok: dict[str, dict], hand: str, table: Path, plots: Path) -> N
     plots.mkdir(parents=True, exist_ok=True)
     columns = ["sequence", "object", "hand", "method", "frames", "keypoint_error_mm",
                "fingertip_error_mm", "time_aligned_cd_mm", "velocity_kl", "rms_acc", "pd_mm",
-               "pd_max_mm", "cd_mm", "spd_mm", "fvr", "ssr", "ssr_bench"]  # fmt: skip
+               "pd_max_mm", "cd_mm", "cd_contact_mm", "spd_mm", "fvr", "ssr",
+               "ssr_bench"]  # fmt: skip
     with atomic_path(table) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(columns)

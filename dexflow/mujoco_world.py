@@ -49,32 +49,41 @@ Protocol for one frame ``(q, T)`` (numbers from ``params.mujoco`` unless said ot
    leaders; limits hold): **squeeze** moves every point ``push_m`` (plus its gap) into the
    object, **pregrasp** backs it off by ``push_m``; **grasp** is ``q``. Without contacts the
    three are ``q``.
-3. For each direction of :data:`dexflow.simulate.DIRECTIONS` (+x, -x, +y, -y, +z, -z) in turn,
-   from a reset world: the hand at the pregrasp, the object at its pose; the actuator targets
-   move linearly pregrasp -> grasp over ``close_steps`` control steps of ``steps_per_control``
-   physics steps, then grasp -> squeeze likewise; then a force ``force_scale * object_mass_kg``
-   newtons along the direction acts on the object (``xfrc_applied``, no torque) and, every
-   ``steps_per_check`` steps (``hold_checks`` times), the object's displacement (of its frame's
-   origin) and rotation angle are measured **from its initial pose, before the fingers closed**
-   (as DexGraspBench does). The direction fails once the displacement reaches
-   ``max_displacement_m`` or the rotation ``max_rotation_deg``.
-4. ``held``: the object touches the hand (a contact closer than 1 mm) at the end of the test.
+3. The fingers close once, from a reset world: the hand at the pregrasp, the object at its
+   pose; the actuator targets move linearly pregrasp -> grasp over ``close_steps`` control
+   steps of ``steps_per_control`` physics steps, then grasp -> squeeze likewise. Every test
+   below starts from that closed state (MuJoCo's whole integration state is saved and
+   restored, so each steps exactly as from a fresh reset and close).
+4. For each direction ``d`` of :data:`dexflow.grasp_protocol.DIRECTIONS` (+x, -x, +y, -y, +z,
+   -z) in turn, two tests, each from the closed state:
+
+   - **DexGraspBench's push**: a force ``force_scale * object_mass_kg`` newtons along ``d``
+     acts on the object (``xfrc_applied``, no torque) and, every ``steps_per_check`` steps
+     (``hold_checks`` times), the object's displacement (of its frame's origin) and rotation
+     angle are measured **from its initial pose, before the fingers closed** (as DexGraspBench
+     does). The direction fails once the displacement reaches ``max_displacement_m`` or the
+     rotation ``max_rotation_deg``; as in DexGraspBench, the push tests **stop at the first
+     failing direction** (the remaining ones are untested: ``tested`` False, NaN displacement
+     and rotation).
+   - **The paper's gravity test** (the protocol of pybullet's test, so that the criterion
+     means the same in both engines): the object's weight ``object_mass_kg * gravity`` acts
+     along ``d`` for ``control_steps * control_dt_s`` seconds (100 control steps of 1/60 s by
+     default); ``held[d]``: the object still touches the hand (a contact closer than 1 mm) at
+     the end. With ``early_exit`` a test ends as failed once the object is dropped (farther
+     than ``drop_distance_m`` from every hand geom and moved more than
+     ``max_displacement_m``), and the gravity tests stop at the first direction not held.
 
 Two diagnostics of why a frame fails, not criteria: how far the object moved and turned while
-the fingers closed, before any push (``closing_displacement_m``, ``closing_rotation_deg``,
-measured in the first direction's run; every direction closes the same way from a reset world),
+the fingers closed, before any push (``closing_displacement_m``, ``closing_rotation_deg``),
 and how one-sided the pushes of step 2 are (``imbalance``,
 :func:`dexflow.grasp_protocol.imbalance` of the directions into the object at the pushed
 bodies' closest contacts: 0 when they cancel, 1 when all press the same way). With gravity off
 and the object free, a squeeze that is not opposed shoves the object out of the hand before any
 force is applied: such a frame fails in its first direction, whatever that is.
 
-As in DexGraspBench, a frame's test **stops at the first failing direction**: the remaining
-ones are untested (``tested`` False, NaN displacement and rotation, ``held`` False). Criteria:
-``bench`` (DexGraspBench): all six tested and within both thresholds; ``contact`` (the paper):
-all six tested and held in each. So ``contact`` is computed over the tested directions only when
-all six were tested, that is when ``bench`` passed: here ``contact`` implies ``bench`` (unlike
-pybullet's test, which runs on while either criterion may still pass).
+Criteria: ``bench`` (DexGraspBench): all six pushes tested and within both thresholds;
+``contact`` (the paper's): held at the end of all six gravity tests. The two are independent
+tests of the same closed grasp: neither implies the other.
 
 Deterministic: every test resets the data (``mj_resetData``) and sets everything it reads, so a
 frame's result depends neither on the frames tested before it nor on the world instance.
@@ -113,6 +122,8 @@ _HAND_SOLREF = (0.005, 1.0)
 _ROLLING_FRICTION = 1e-4  # MuJoCo's default; unused at condim 4
 _MOUNT = "dexflow_mount"
 _OBJECT = "dexflow_object"
+_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # what _state saves
+_DROP_CHECK_S = 1 / 6  # seconds between checks for a dropped object in the gravity test
 HAND_PREFIX = "hand/"  # before every name of the hand's in a scene
 
 logger = logging.getLogger(__name__)
@@ -520,8 +531,9 @@ class MujocoGraspWorld:
             object), ``closing_displacement_m`` and ``closing_rotation_deg`` (floats: how far
             the object moved and turned while the fingers closed, before any push; NaN in
             pybullet's test, which holds the object then), ``touching (F,)`` bool per finger of
-            the hand config, ``held (6,)``, ``displacement_m (6,)``, ``rotation_deg (6,)``,
-            ``tested (6,)`` and the criteria ``contact``, ``bench`` (bools); directions in
+            the hand config, ``held (6,)`` (held at the end of each gravity test),
+            ``displacement_m (6,)``, ``rotation_deg (6,)`` and ``tested (6,)`` (of the
+            pushes) and the criteria ``contact`` (the paper's), ``bench`` (bools); directions in
             :data:`dexflow.simulate.DIRECTIONS` order.
         """
         self._require_object("test_frame")
@@ -541,25 +553,24 @@ class MujocoGraspWorld:
             displacement = np.full(6, np.nan)
             rotation = np.full(6, np.nan)
             tested = np.zeros(6, bool)
-            closing = (np.nan, np.nan)
-            force = mp.force_scale * mp.object_mass_kg
+            self._reset(configs["pregrasp"], pose)
+            start = d.qpos[self._object_qpos].copy()
+            self._drive(configs["pregrasp"], configs["grasp"])
+            self._drive(configs["grasp"], configs["squeeze"])
+            closing = self._moved(start)
+            closed = self._state()  # every direction starts from this closed grasp
+            push, weight = mp.force_scale * mp.object_mass_kg, mp.object_mass_kg * p.gravity
+            bench_alive = paper_alive = True
             for k, direction in enumerate(DIRECTIONS):
-                tested[k] = True
-                self._reset(configs["pregrasp"], pose)
-                start = d.qpos[self._object_qpos].copy()
-                self._drive(configs["pregrasp"], configs["grasp"])
-                self._drive(configs["grasp"], configs["squeeze"])
-                if k == 0:  # every direction closes the same way from a reset world
-                    closing = self._moved(start)
-                d.xfrc_applied[self._object, :3] = force * direction
-                for _ in range(mp.hold_checks):
-                    mujoco.mj_step(m, d, nstep=mp.steps_per_check)
-                    displacement[k], rotation[k] = self._moved(start)
-                    if not _within(displacement[k], rotation[k], p):
-                        break
-                held[k] = bool((self._contacts(TOUCH_M)["dist"] < TOUCH_M).any())
-                if not _within(displacement[k], rotation[k], p):
-                    break  # DexGraspBench: the frame fails at its first failing direction
+                if bench_alive:
+                    tested[k] = True
+                    displacement[k], rotation[k] = self._push(closed, start, push * direction)
+                    # DexGraspBench: the frame fails at its first failing direction
+                    bench_alive = bool(_within(displacement[k], rotation[k], p))
+                if paper_alive:
+                    held[k] = paper_alive = self._gravity(closed, start, weight * direction)
+                if not (bench_alive or paper_alive):
+                    break
         finally:
             m.geom_friction[:, 0] = self._friction
         bench = bool(tested.all() and _within(displacement, rotation, p).all())
@@ -574,9 +585,58 @@ class MujocoGraspWorld:
             "displacement_m": displacement,
             "rotation_deg": rotation,
             "tested": tested,
-            "contact": bench and bool(held.all()),
+            "contact": bool(held.all()),
             "bench": bench,
         }
+
+    def _state(self) -> np.ndarray:
+        """Everything the next steps depend on (MuJoCo's integration state), for
+        :meth:`_restore`: a restored world steps exactly as the saved one would have."""
+        size = mujoco.mj_stateSize(self.model, _STATE)
+        state = np.empty(size)
+        mujoco.mj_getState(self.model, self.data, state, _STATE)
+        return state
+
+    def _restore(self, state: np.ndarray) -> None:
+        mujoco.mj_setState(self.model, self.data, state, _STATE)
+
+    def _push(
+        self, closed: np.ndarray, start: np.ndarray, force: np.ndarray
+    ) -> tuple[float, float]:
+        """DexGraspBench's push from the ``closed`` state: ``force`` (3,) on the object,
+        checked every ``steps_per_check`` steps until it leaves the thresholds; the object's
+        displacement (m) and rotation (deg) from ``start`` (7,) when the push ends."""
+        mp, m, d = self.params.mujoco, self.model, self.data
+        self._restore(closed)
+        d.xfrc_applied[self._object, :3] = force
+        for _ in range(mp.hold_checks):
+            mujoco.mj_step(m, d, nstep=mp.steps_per_check)
+            moved = self._moved(start)
+            if not _within(*moved, self.params):
+                break
+        return moved
+
+    def _gravity(self, closed: np.ndarray, start: np.ndarray, weight: np.ndarray) -> bool:
+        """The paper's test of one direction from the ``closed`` state: the object's weight
+        ``weight`` (3,) acts on it for ``control_steps * control_dt_s`` seconds; whether the
+        object still touches the hand (closer than :data:`TOUCH_M`) at the end. With
+        ``early_exit`` the test ends once the object is dropped (farther than
+        ``drop_distance_m`` from the hand and moved more than ``max_displacement_m``: under
+        a constant force it does not come back)."""
+        p, m, d = self.params, self.model, self.data
+        self._restore(closed)
+        d.xfrc_applied[self._object, :3] = weight
+        steps = round(p.control_steps * p.control_dt_s / p.mujoco.timestep_s)
+        chunk = max(1, round(_DROP_CHECK_S / p.mujoco.timestep_s))
+        for done in range(0, steps, chunk):
+            mujoco.mj_step(m, d, nstep=min(chunk, steps - done))
+            if p.early_exit and self._dropped(start):
+                return False
+        return bool((self._contacts(TOUCH_M)["dist"] < TOUCH_M).any())
+
+    def _dropped(self, start: np.ndarray) -> bool:
+        far = not len(self._contacts(self.params.drop_distance_m)["dist"])
+        return far and self._moved(start)[0] > self.params.max_displacement_m
 
     def _drive(self, start: np.ndarray, end: np.ndarray) -> None:
         """Move the actuator targets linearly from ``start`` to ``end`` (dof,) over

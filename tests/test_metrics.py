@@ -11,7 +11,10 @@ import torch
 import trimesh
 
 from dexflow.hands import load_hand
+from dexflow.hands.robot import MEASURE_POINTS, measurement_hand
 from dexflow.measures import (
+    CD_CAP_M,
+    capped_contact_distance,
     contact_distance,
     penetration_depth,
     state_flicker,
@@ -61,6 +64,47 @@ def test_contact_distance_and_flicker_by_hand():
     assert cd[1] == pytest.approx(0.003) and np.isnan(cd[2])
     states = np.array([[0, 0], [1, 0], [0, 0], [1, 0], [1, 0]], dtype=bool)  # 3 changes
     assert state_flicker(states, fps=10.0) == pytest.approx(3 / 2 / (4 / 10.0))
+
+
+def test_bodex_contact_distance_counts_every_finger_capped_at_one_centimetre():
+    """BODex's CD: every finger, inside as 0, beyond 1 cm as 1 cm; NaN outside the grasp. The
+    fingers-in-contact variant (cd_contact) differs where a finger misses the object."""
+    per_finger = np.array([[0.004, -0.002, 0.05], [0.001, 0.003, 0.002], [0.1, 0.1, 0.1]])
+    cd = capped_contact_distance(per_finger, np.array([True, True, False]))
+    assert cd[0] == pytest.approx((0.004 + 0.0 + CD_CAP_M) / 3)
+    assert cd[1] == pytest.approx(0.002) and np.isnan(cd[2])
+    in_contact = contact_distance(per_finger, np.array([[True, True, False]] * 3))
+    assert in_contact[0] == pytest.approx(0.002) and in_contact[0] < cd[0]
+
+
+def test_penetration_is_measured_on_every_collision_shape(allegro):
+    """The measurement hand samples the links the config leaves out of its surface points
+    (a forearm), densely; the stages' own hand keeps its points."""
+    import dataclasses
+
+    from dexflow.hands.robot import RobotHand
+
+    q = allegro.zero().numpy()
+    with torch.no_grad():
+        points = measurement_hand(allegro).surface(torch.as_tensor(q))[0].numpy()[0]
+    lowest = int(points[:, 2].argmin())  # leave out the link that reaches lowest
+    left_out = measurement_hand(allegro).surface_point_links[lowest]
+    hand = RobotHand(
+        dataclasses.replace(allegro.spec, surface_exclude=[left_out]), allegro.base_dir
+    )
+    measured = measurement_hand(hand)
+    assert left_out not in hand.surface_links and left_out in measured.surface_links
+    assert set(measured.surface_links) == {g.link for g in hand.model.geometries}
+    assert len(measured.surface_point_links) >= MEASURE_POINTS * 0.9
+    assert measurement_hand(hand) is measured  # built once per process
+    # a slab 3 mm into the lowest link: deeper than the stages' points reach, not than PD's
+    slab = trimesh.creation.box(extents=(0.4, 0.4, 0.1))
+    sdf = SignedDistanceGrid.from_mesh(slab, spacing=0.005)
+    pose = np.eye(4)
+    pose[:3, 3] = [*points[lowest, :2], points[lowest, 2] + 0.003 - 0.05]
+    depth_stage = penetration_depth(surface_distances(hand, q, pose[None], sdf)[0])[0]
+    depth_measured = penetration_depth(surface_distances(measured, q, pose[None], sdf)[0])[0]
+    assert depth_measured == pytest.approx(0.003, abs=3e-4) and depth_stage < depth_measured
 
 
 def test_chamfer_of_identical_and_shifted_sets():

@@ -168,6 +168,46 @@ def test_wrapped_hand_holds_the_box_in_all_six_directions(scene):
     assert result["closing_displacement_m"] < 0.003 and result["closing_rotation_deg"] < 5
 
 
+def test_the_paper_and_dexgraspbench_criteria_are_independent_tests(scene):
+    """The paper's criterion (contact kept under the object's weight) and DexGraspBench's (the
+    object moves less than the thresholds under the push) test the same closed grasp apart:
+    thresholds too tight for any push fail only ``bench``, a weight no grasp can hold fails
+    only ``contact``."""
+    _, world, pose, folder, closed = scene
+    results = {}
+    for name, change in {
+        "tight": {"max_displacement_m": 1e-5},
+        "heavy": {"gravity": 2000.0},
+    }.items():
+        other = MujocoGraspWorld(world.hand, dataclasses.replace(SimulateParams(), **change))
+        other.set_object(folder / "box.obj")
+        results[name] = other.test_frame(closed, pose)
+    assert results["tight"]["contact"] and not results["tight"]["bench"]
+    assert (
+        results["tight"]["held"].all()
+        and results["tight"]["tested"].tolist() == [True] + [False] * 5
+    )
+    assert results["heavy"]["bench"] and not results["heavy"]["contact"]
+    assert not results["heavy"]["held"][0] and not results["heavy"]["held"][1:].any()
+
+
+def test_a_restored_state_steps_exactly_as_the_saved_one(scene):
+    """Every direction starts from the one closed grasp: MuJoCo's integration state saved and
+    restored steps bit for bit as the original does."""
+    _, world, pose, _, closed = scene
+    m, d = world.model, world.data
+    world._reset(closed, pose)
+    mujoco.mj_step(m, d, nstep=50)
+    saved = world._state()
+    mujoco.mj_step(m, d, nstep=200)
+    first = d.qpos.copy()
+    world._reset(closed, pose)  # something else in between
+    mujoco.mj_step(m, d, nstep=7)
+    world._restore(saved)
+    mujoco.mj_step(m, d, nstep=200)
+    np.testing.assert_array_equal(d.qpos, first)
+
+
 def test_imbalance_is_zero_for_opposed_pushes_and_one_for_one_sided_ones():
     assert imbalance([[1, 0, 0], [-2, 0, 0]]) == pytest.approx(0.0)  # lengths do not matter
     angles = np.radians([0, 120, 240])

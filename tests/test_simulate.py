@@ -283,7 +283,8 @@ def test_penetration_rule_uses_the_mesh_not_the_bulging_convex_parts(scene, box_
 
 def test_both_engines_test_the_same_frames_and_their_agreement_is_counted(scene, box_sdf):
     """pybullet and MuJoCo on one trajectory: the same frames, one row set per engine, the first
-    engine's success at the top level, and per-frame agreement by DexGraspBench's criterion."""
+    engine's DexGraspBench success at the top level, and per-frame agreement by the paper's
+    criterion."""
     from dexflow.mujoco_world import MujocoGraspWorld
 
     hand, world, pose, folder = scene
@@ -304,6 +305,32 @@ def test_both_engines_test_the_same_frames_and_their_agreement_is_counted(scene,
         assert result["engines"][engine]["success_bench"]
     assert result["success_bench"] == result["engines"]["mujoco"]["success_bench"]  # the first
     assert (result["agree_hold"], result["agree_drop"], result["disagree"]) == (2, 1, 0)
+    assert result["success_contact"] and result["success_frame"] == 0
+
+
+def test_the_headline_ssr_of_two_engines_needs_a_frame_held_in_both(scene, box_sdf):
+    """MuJoCo holds the wrapped box; pybullet, pulling it with fifty times its weight, drops it:
+    each engine keeps its own result, the headline (the conservative SSR) fails, and the two
+    engines disagree on every frame."""
+    from dexflow.mujoco_world import MujocoGraspWorld
+
+    hand, world, pose, folder = scene
+    params = dataclasses.replace(world.params, stride=1, early_stop=False)
+    mujoco = MujocoGraspWorld(hand, params)
+    pybullet = GraspWorld(hand, hand_urdf(hand), dataclasses.replace(params, gravity=500.0))
+    for w in (pybullet, mujoco):
+        w.set_object(folder / "box.obj")
+    closed = _closed(hand, world, pose)
+    q, poses = np.stack([closed, closed]), np.repeat(pose[None], 2, axis=0)
+    arrays, result = simulate_sequence(
+        {"mujoco": mujoco, "pybullet": pybullet}, q, poses, 0, box_sdf
+    )
+    assert arrays["mujoco.contact"].tolist() == [True, True]
+    assert arrays["pybullet.contact"].tolist() == [False, False]
+    assert result["engines"]["mujoco"]["success_contact"]
+    assert not result["engines"]["pybullet"]["success_contact"]
+    assert not result["success_contact"] and result["success_frame"] == -1
+    assert (result["agree_hold"], result["agree_drop"], result["disagree"]) == (0, 0, 2)
 
 
 def test_perturbed_trials_make_success_robust_and_zero_trials_are_the_single_trial(scene, box_sdf):
