@@ -305,7 +305,8 @@ def test_both_engines_test_the_same_frames_and_their_agreement_is_counted(scene,
         assert result["engines"][engine]["success_bench"]
     assert result["success_bench"] == result["engines"]["mujoco"]["success_bench"]  # the first
     assert (result["agree_hold"], result["agree_drop"], result["disagree"]) == (2, 1, 0)
-    assert result["success_contact"] and result["success_frame"] == 0
+    assert result["success_contact"] and result["success"] and result["success_frame"] == 0
+    assert (result["criteria_agree_hold"], result["criteria_disagree"]) == (2, 0)
 
 
 def test_the_headline_ssr_of_two_engines_needs_a_frame_held_in_both(scene, box_sdf):
@@ -329,7 +330,8 @@ def test_the_headline_ssr_of_two_engines_needs_a_frame_held_in_both(scene, box_s
     assert arrays["pybullet.contact"].tolist() == [False, False]
     assert result["engines"]["mujoco"]["success_contact"]
     assert not result["engines"]["pybullet"]["success_contact"]
-    assert not result["success_contact"] and result["success_frame"] == -1
+    assert not result["success_contact"] and not result["success"]
+    assert result["success_frame"] == -1
     assert (result["agree_hold"], result["agree_drop"], result["disagree"]) == (0, 0, 2)
 
 
