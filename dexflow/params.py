@@ -523,6 +523,16 @@ class ReplayParams:
         lost_position_m: The object is *lost* from the first frame its position error exceeds
             this (or its rotation error ``lost_rotation_rad``); time held is the time before.
         lost_rotation_rad: See ``lost_position_m``.
+        release_distance_m: The scored window ends at the release: the first frame after the
+            first contact out of contact where the recorded object is this far from where it
+            was at the last contact, both in the world and in the recorded wrist's frame.
+        support_tolerance_m: Not scored ("no support") when the lowest point of the recorded
+            object moves up or down by more than this between the first frame and the first
+            contact (nothing static held it where the replay's table is).
+        free_fall_s: Not scored ("free fall") when, in the scored window, the recorded object's
+            mean vertical acceleration over this long (s) ...
+        free_fall_tolerance_mps2: ... is within this of ``-gravity`` (m/s²), and it moves
+            ``release_distance_m`` away from the recorded hand meanwhile.
     """
 
     lead_frames: int = 5
@@ -542,6 +552,10 @@ class ReplayParams:
     carried_fraction: float = 0.5
     lost_position_m: float = 0.05
     lost_rotation_rad: float = 0.5
+    release_distance_m: float = 0.05
+    support_tolerance_m: float = 0.05
+    free_fall_s: float = 0.2
+    free_fall_tolerance_mps2: float = 2.5
 
 
 def _validate_replay(r: ReplayParams) -> None:
@@ -549,7 +563,8 @@ def _validate_replay(r: ReplayParams) -> None:
     _require(r.substeps >= 1, "replay.substeps", ">= 1", r.substeps)
     for key in ("base_frequency_hz", "base_force_n", "base_torque_nm", "kp", "object_mass_kg",
                 "max_position_error_m", "max_rotation_error_rad", "lost_position_m",
-                "lost_rotation_rad"):  # fmt: skip
+                "lost_rotation_rad", "release_distance_m", "support_tolerance_m", "free_fall_s",
+                "free_fall_tolerance_mps2"):  # fmt: skip
         _require(getattr(r, key) > 0, f"replay.{key}", "> 0", getattr(r, key))
     _require(0 < r.carried_fraction <= 1, "replay.carried_fraction", "within (0, 1]",
              r.carried_fraction)  # fmt: skip

@@ -39,18 +39,71 @@ actuators on every finger joint, the object from its convex parts, elliptic fric
   recorded hands never knew of a table and a kinematic hand under its top would be shoved out.
 - **The object** free (a free joint), ``object_mass_kg`` at uniform density, ``friction``.
 
-The window: from ``lead_frames`` before the first contact (stage contact's final states; the
-hand approaches) to the last frame in contact (the end of the grasp phase). The object starts at
-rest at its recorded pose at the first contact; each recorded frame is ``substeps`` physics steps
-of ``1 / (fps * substeps)`` seconds, the targets moving linearly between frames.
+**The scored window.** The replay runs from ``lead_frames`` before the first contact (stage
+contact's final states; the hand approaches) to ``end``; frames first contact..``end`` are
+scored. The object starts at rest at its recorded pose at the first contact; each recorded frame
+is ``substeps`` physics steps of ``1 / (fps * substeps)`` seconds, the targets moving linearly
+between frames. ``end`` is the last frame in contact before the **release**, else the last frame
+in contact. The release is the first frame ``r`` after the first contact where
+
+- no finger is in contact,
+- the recorded object is more than ``release_distance_m`` from its position at ``a``, the last
+  frame in contact before ``r``, and
+- it is also more than ``release_distance_m`` from where it would be had it moved rigidly with
+  the recorded human hand since ``a`` (its position in the wrist frame of the human keypoints,
+  :func:`dexflow.human.keypoints.wrist_frame`, moved that far), the hand tracked at ``r`` and
+  ``a``.
+
+After its release the recorded object is carried off by someone else or falls, and the replayed
+one, with nothing holding it, falls: on GRAB "pass" sequences scored to the last contact, mean
+errors of 188-291 cm. The object must leave the hand, not only contact: on 83 DexYCB captures the
+robot's fingers lose contact for 1-14 frames mid-carry in 6; in 5 the object moves 4-26 cm
+meanwhile but at most 2.3 cm in the wrist's frame, in the sixth it does not move. An object put
+down and let go does not move either, so putting it down and grasping it again is no release.
+
+**Not scored** (``scored`` false, ``not_scored_reason``; not replayed, left out of every rate and
+mean of the summary), the first that applies of:
+
+- ``"no contact"``: no finger is ever in contact.
+- ``"no support"``: the replay's table stands for a static support under the object at the first
+  contact, and the recording must agree: from its first frame to the first contact the lowest
+  point of the object's convex parts (at the recorded poses) stays within
+  ``support_tolerance_m`` of its height at the first contact. Sliding or tipping over on a table
+  keeps it there; lifted by the other hand, handed over by someone else or falling does not. A
+  first contact at frame 0 leaves nothing to judge (scored); an object that hangs perfectly
+  still in the air until the grasp cannot be told from one on a table this way. On the 83 DexYCB
+  captures (z along their camera's axis) it changes by at most 2.3 cm.
+- ``"free fall"``: within first contact..``end`` the recorded object falls freely, away from the
+  hand: ``k = max(1, round(free_fall_s * fps))`` frames ``t..t+k-1`` there over which its mean
+  vertical acceleration ``(v(t+k-1) - v(t-1)) * fps / k``, ``v(s) = (z(s+1) - z(s)) * fps``, is
+  within ``free_fall_tolerance_mps2`` of ``-gravity``, and over which it moves more than
+  ``release_distance_m`` in the wrist's frame (from frame ``t-1`` to ``t+k``, the hand tracked at
+  both). A finger is in contact with an object falling off the hand (contact late to see a drop,
+  or a tracking error): no replay reproduces that. Away from the hand, because hands move
+  objects that fast: the demo's put objects down at a mean -9.2 m/s² over 0.2 s.
+
+Vertical is world z, as for the replay's gravity and table.
 
 Per sequence: the object's position and rotation error against its recorded pose at every replayed
 frame; from the first contact on, their means (SPIDER's success), maxima and final values, SPIDER's
 success, carried and success (both), the frame where the object was **lost** (its error first
 beyond ``lost_position_m`` or ``lost_rotation_rad``; -1: never) and the **time held** before it;
 also the error an object left where it started would have (``static_error_mean_m`` over the grasp,
-the bar SPIDER's success sets; ``static_error_final_m`` at its end, the bar carried sets).
-Sequences without contact are not replayed (counted apart).
+the bar SPIDER's success sets; ``static_error_final_m`` at its end, the bar carried sets). Every
+sequence has ``replayed``, ``scored`` and ``not_scored_reason`` (null when scored); one with
+contact also ``start`` (first frame replayed), ``first_contact``, ``end``, ``last_contact``,
+``release_frame`` (-1: none), ``support_drift_m`` (the largest change of the lowest point's
+height before the first contact, m) and ``free_fall_frame`` (first frame of a free fall in the
+window; -1: none), :class:`ReplayWindow`.
+
+The summary's rates and means (``success_rate``, ``spider_success_rate``, ``carried_rate``,
+``lost_rate`` in %, ``position_error_mean_m``, ``rotation_error_mean_rad``,
+``position_error_final_m``, ``held_fraction``, ``static_error_*``, ``base_error_mean_m``,
+``joint_error_mean_rad``) are over the scored sequences only. Counts: ``num_scored`` (=
+``num_replayed``: only scored sequences are replayed), ``num_not_scored`` and, per reason,
+``num_not_scored_no_contact``, ``num_not_scored_no_support``, ``num_not_scored_free_fall``;
+``num_ended_at_release``: scored sequences whose window ends at a release before their last
+contact.
 
 Deterministic: one single-threaded MuJoCo run per sequence from a reset state; nothing random.
 """
@@ -59,6 +112,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import mujoco
@@ -66,24 +121,38 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dexflow.hands.robot import RobotHand
+from dexflow.human.keypoints import wrist_frame
 from dexflow.io.artifacts import (
     ObjectAssets,
     ReplayResult,
     write_replay,
 )
 from dexflow.io.layout import Layout
+from dexflow.io.sequence import Sequence
 from dexflow.labelled_stage import labelled_hand, labelled_output, load_labelled
 from dexflow.mujoco_world import _MOUNT, MujocoGraspWorld, _add_object, _hand_spec
 from dexflow.params import MujocoParams, PipelineParams, ReplayParams, SimulateParams
 from dexflow.runner import StageSpec
 
-__all__ = ["STAGE", "ReplayWorld", "grasp_window", "replay_errors", "run_replay"]
+__all__ = [
+    "NOT_SCORED_REASONS",
+    "STAGE",
+    "ReplayWindow",
+    "ReplayWorld",
+    "aggregate",
+    "grasp_window",
+    "replay_errors",
+    "replay_sequence",
+    "replay_window",
+    "run_replay",
+]
 
 _TABLE = "dexflow_table"
 _TABLE_HALF_SIZE_M = (0.5, 0.5, 0.02)
 _BASE_AXES = ("x", "y", "z", "rx", "ry", "rz")
 _OBJECT_BITS = 3  # the object collides with the hand (bit 1) and the table (bit 2)
 _TABLE_BITS = 2
+NOT_SCORED_REASONS = ("no contact", "no support", "free fall")
 
 logger = logging.getLogger(__name__)
 
@@ -220,6 +289,14 @@ class ReplayWorld(MujocoGraspWorld):
         self.data.mocap_pos[self._table] = self._table_pos
         return top
 
+    def lowest_heights(self, poses: np.ndarray) -> np.ndarray:
+        """World height (z) of the lowest point of the object's parts at each of ``poses``
+        (T, 4, 4), (T,) metres: at a resting pose, the top of what it rests on."""
+        self._require_object("lowest_heights")
+        points = np.concatenate(self._parts)  # (P, 3)
+        poses = np.asarray(poses, dtype=float)
+        return (points @ poses[:, 2, :3].T).min(axis=0) + poses[:, 2, 3]
+
     def _drive_gains(self) -> None:
         """Critically damped base servos at ``base_frequency_hz`` for the current state's
         inertia along each base axis."""
@@ -269,7 +346,7 @@ class ReplayWorld(MujocoGraspWorld):
             poses: (T, 4, 4) the recorded object poses.
             fps: Frames per second of the sequence.
             window: ``(start, first_contact, end)`` frame indices, ``start <= first_contact
-                <= end`` (:func:`grasp_window`); the object starts at its pose at
+                <= end`` (:func:`replay_window`); the object starts at its pose at
                 ``first_contact``.
             targets: (T, dof) the finger targets (``q`` if None, e.g. :meth:`squeezed`).
 
@@ -363,6 +440,119 @@ def grasp_window(final: np.ndarray, lead_frames: int) -> tuple[int, int, int] | 
     return max(0, first - lead_frames), first, end
 
 
+@dataclass(frozen=True)
+class ReplayWindow:
+    """The frames a sequence is replayed over and scored on, and whether it is scored (see the
+    module docs for the rules).
+
+    Attributes:
+        start: First frame replayed: ``lead_frames`` before the first contact, not before 0.
+        first_contact: First frame with a finger in contact; scoring starts there.
+        end: Last frame replayed and scored: the last in contact before the release, else the
+            last in contact.
+        last_contact: Last frame with a finger in contact.
+        release_frame: Frame where the object was found to have left the hand (-1: never).
+        support_drift_m: Largest change of the height of the object's lowest point from the
+            first frame to the first contact, against its height at the first contact.
+        free_fall_frame: First frame of a free fall within ``first_contact..end`` (-1: none).
+        not_scored_reason: None when scored, else ``"no support"`` or ``"free fall"``.
+    """
+
+    start: int
+    first_contact: int
+    end: int
+    last_contact: int
+    release_frame: int
+    support_drift_m: float
+    free_fall_frame: int
+    not_scored_reason: str | None
+
+    @property
+    def scored(self) -> bool:
+        return self.not_scored_reason is None
+
+    def entry(self) -> dict:
+        """The window's keys of the sequence's summary entry."""
+        return {**asdict(self), "scored": self.scored}
+
+
+def replay_window(
+    touching: np.ndarray, seq: Sequence, lowest_m: np.ndarray, p: ReplayParams
+) -> ReplayWindow | None:
+    """Where a sequence is replayed and scored, and whether it can be (module docs).
+
+    Args:
+        touching: (T,) frames with a finger in contact (stage contact's final states).
+        seq: The recorded sequence: object poses, human keypoints and where they were tracked.
+        lowest_m: (T,) height of the object's lowest point at each recorded pose
+            (:meth:`ReplayWorld.lowest_heights`).
+        p: The replay's parameters.
+
+    Returns:
+        The window; None without contact.
+    """
+    touching = np.asarray(touching, dtype=bool)
+    contact = grasp_window(touching[:, None], p.lead_frames)
+    if contact is None:
+        return None
+    start, first, last = contact
+    in_hand = _in_wrist_frame(seq)
+    release = _release_frame(touching, seq, in_hand, first, p.release_distance_m)
+    end = last if release < 0 else int(np.flatnonzero(touching[:release])[-1])
+    lowest_m = np.asarray(lowest_m, dtype=float)
+    drift = float(np.abs(lowest_m[: first + 1] - lowest_m[first]).max())
+    fall = _free_fall_frame(seq, in_hand, first, end, p)
+    reason = None
+    if drift > p.support_tolerance_m:
+        reason = "no support"
+    elif fall >= 0:
+        reason = "free fall"
+    return ReplayWindow(start, first, end, last, release, drift, fall, reason)
+
+
+def _in_wrist_frame(seq: Sequence) -> np.ndarray:
+    """(T, 3) the recorded object's position in the recorded wrist's frame (constant while the
+    hand carries it rigidly)."""
+    wrist = wrist_frame(seq.keypoints)
+    position = seq.obj_pose[:, :3, 3]
+    return np.einsum("tji,tj->ti", wrist[:, :3, :3], position - wrist[:, :3, 3])
+
+
+def _release_frame(
+    touching: np.ndarray, seq: Sequence, in_hand: np.ndarray, first: int, distance_m: float
+) -> int:
+    """First frame after ``first`` where the object has left the hand (-1: none): out of
+    contact, and ``distance_m`` from where it was at the last contact both in the world and in
+    the wrist's frame (``in_hand``), the hand tracked at both frames."""
+    frames = np.arange(len(touching))
+    held = np.maximum.accumulate(np.where(touching, frames, 0))  # last frame in contact so far
+    position = seq.obj_pose[:, :3, 3]
+    moved = np.linalg.norm(position - position[held], axis=1) > distance_m
+    left = np.linalg.norm(in_hand - in_hand[held], axis=1) > distance_m
+    tracked = seq.valid_mask
+    found = ~touching & (frames > first) & tracked & tracked[held] & moved & left
+    hits = np.flatnonzero(found)
+    return int(hits[0]) if len(hits) else -1
+
+
+def _free_fall_frame(
+    seq: Sequence, in_hand: np.ndarray, first: int, end: int, p: ReplayParams
+) -> int:
+    """First frame ``t`` in ``first..end`` starting ``k`` frames there over which the object
+    falls freely, away from the hand (-1: none): its mean vertical acceleration within
+    ``free_fall_tolerance_mps2`` of ``-gravity``, and ``release_distance_m`` moved in the
+    wrist's frame (``in_hand``) from frame ``t - 1`` to ``t + k``, the hand tracked at both."""
+    fps, z = seq.fps, seq.obj_pose[:, 2, 3]
+    k = max(1, round(p.free_fall_s * fps))
+    velocity = np.diff(z) * fps  # (T-1,) between frames s and s+1
+    t = np.arange(max(first, 1), min(end, len(z) - 2) - k + 2)
+    mean = (velocity[t + k - 1] - velocity[t - 1]) * fps / k
+    tracked = seq.valid_mask[t - 1] & seq.valid_mask[t + k]
+    away = np.linalg.norm(in_hand[t + k] - in_hand[t - 1], axis=1) > p.release_distance_m
+    hits = t[(np.abs(mean + p.gravity) < p.free_fall_tolerance_mps2) & tracked & away]
+    return int(hits[0]) if len(hits) else -1
+
+
 def sequence_result(
     rows: dict[str, np.ndarray], first: int, poses: np.ndarray, fps: float, p: ReplayParams
 ) -> dict:
@@ -416,6 +606,67 @@ def _empty_rows() -> dict[str, np.ndarray]:
     }
 
 
+def replay_sequence(
+    world: ReplayWorld, seq: Sequence, q: np.ndarray, touching: np.ndarray
+) -> tuple[dict[str, np.ndarray], dict]:
+    """Replay one sequence over its window, if it can be scored (module docs).
+
+    Args:
+        world: The scene, its object set (:meth:`ReplayWorld.set_object`) where ``touching``
+            has a contact.
+        seq: The recorded sequence (object poses, human keypoints, fps).
+        q: (T, dof) the trajectory.
+        touching: (T,) frames with a finger in contact (stage contact's final states).
+
+    Returns:
+        The rows of :class:`~dexflow.io.artifacts.ReplayResult` (none where not scored) and the
+        sequence's summary entry.
+    """
+    p = world.replay_params
+    touching = np.asarray(touching, dtype=bool)
+    not_scored = {"replayed": False, "scored": False, "frames": 0}
+    if not touching.any():
+        return _empty_rows(), {**not_scored, "not_scored_reason": "no contact"}
+    window = replay_window(touching, seq, world.lowest_heights(seq.obj_pose), p)
+    if not window.scored:
+        return _empty_rows(), {**not_scored, **window.entry()}
+    frames = (window.start, window.first_contact, window.end)
+    targets = world.squeezed(q, seq.obj_pose, touching)
+    rows = world.replay(q, seq.obj_pose, seq.fps, frames, targets)
+    result = sequence_result(rows, window.first_contact, seq.obj_pose, seq.fps, p)
+    return rows, {**result, **window.entry()}
+
+
+def aggregate(entries: list[dict]) -> dict:
+    """The summary's counts, rates (%) and means from the sequences' entries: over the scored
+    sequences only (module docs)."""
+    scored = [e for e in entries if e["scored"]]
+    reasons = Counter(e["not_scored_reason"] for e in entries if not e["scored"])
+
+    def mean(key: str) -> float:
+        return float(np.mean([e[key] for e in scored])) if scored else float("nan")
+
+    return {
+        "num_replayed": sum(e["replayed"] for e in entries),
+        "num_scored": len(scored),
+        "num_not_scored": len(entries) - len(scored),
+        **{f"num_not_scored_{r.replace(' ', '_')}": reasons[r] for r in NOT_SCORED_REASONS},
+        "num_ended_at_release": sum(e["end"] < e["last_contact"] for e in scored),
+        "success_rate": 100 * mean("success"),
+        "spider_success_rate": 100 * mean("spider_success"),
+        "carried_rate": 100 * mean("carried"),
+        "position_error_mean_m": mean("position_error_mean_m"),
+        "rotation_error_mean_rad": mean("rotation_error_mean_rad"),
+        "position_error_final_m": mean("position_error_final_m"),
+        "held_fraction": mean("held_fraction"),
+        "lost_rate": 100 * mean("lost"),
+        "static_error_mean_m": mean("static_error_mean_m"),
+        "static_error_final_m": mean("static_error_final_m"),
+        "base_error_mean_m": mean("base_error_mean_m"),
+        "joint_error_mean_rad": mean("joint_error_mean_rad"),
+    }
+
+
 def run_replay(params: PipelineParams, layout: Layout, label: str) -> dict:
     """Stage runner: replay every trajectory labelled ``label`` with the object free.
 
@@ -437,43 +688,19 @@ def run_replay(params: PipelineParams, layout: Layout, label: str) -> dict:
 
     def one(path: Path) -> dict:
         hand, seq, q, found = load_labelled(params, layout, path)
-        window = grasp_window(found.final, rp.lead_frames)
-        if window is None:
-            write_replay(out.sequence(path), ReplayResult(_empty_rows()))
-            return {"replayed": False, "frames": 0, "seconds": 0.0}
+        touching = found.final.any(axis=1)
         world = _world(hand, rp)
-        world.set_object(ObjectAssets(aligned.object_of(seq.obj_mesh)).paths.convex)
+        if touching.any():
+            world.set_object(ObjectAssets(aligned.object_of(seq.obj_mesh)).paths.convex)
         begin = time.perf_counter()
-        targets = world.squeezed(q, seq.obj_pose, found.final.any(axis=1))
-        rows = world.replay(q, seq.obj_pose, seq.fps, window, targets)
+        rows, entry = replay_sequence(world, seq, q, touching)
         seconds = time.perf_counter() - begin
         write_replay(out.sequence(path), ReplayResult(rows))
-        return {**sequence_result(rows, window[1], seq.obj_pose, seq.fps, rp), "seconds": seconds}
+        return {**entry, "seconds": seconds}
 
     tally = stage.run(one, files, params.run)
     seconds = sum(s.pop("seconds") for s in tally.ok)
-    replayed = [s for s in tally.ok if s["replayed"]]
-
-    def mean(key: str) -> float:
-        return float(np.mean([s[key] for s in replayed])) if replayed else float("nan")
-
-    summary = {
-        **tally.counts("replay"),
-        "method": label,
-        "num_replayed": len(replayed),
-        "success_rate": 100 * mean("success"),
-        "spider_success_rate": 100 * mean("spider_success"),
-        "carried_rate": 100 * mean("carried"),
-        "position_error_mean_m": mean("position_error_mean_m"),
-        "rotation_error_mean_rad": mean("rotation_error_mean_rad"),
-        "position_error_final_m": mean("position_error_final_m"),
-        "held_fraction": mean("held_fraction"),
-        "lost_rate": 100 * mean("lost"),
-        "static_error_mean_m": mean("static_error_mean_m"),
-        "static_error_final_m": mean("static_error_final_m"),
-        "base_error_mean_m": mean("base_error_mean_m"),
-        "joint_error_mean_rad": mean("joint_error_mean_rad"),
-    }
+    summary = {**tally.counts("replay"), "method": label, **aggregate(tally.ok)}
     summary["sequences"] = dict(sorted(tally.sequences.items()))
     stage.finish(summary)
     frames = summary["num_frames"]
@@ -488,9 +715,12 @@ STAGE = StageSpec(
     run=run_replay,
     metric_keys=None,  # every aggregate
     describe=lambda s: (
-        f"{s['num_ok']}/{s['num_sequences']} sequences, {s['num_replayed']} with contact "
-        f"replayed; success {s['success_rate']:.1f} % (SPIDER's {s['spider_success_rate']:.1f} "
-        f"% and carried {s['carried_rate']:.1f} %), lost {s['lost_rate']:.0f} %, mean object error "
+        f"{s['num_ok']}/{s['num_sequences']} sequences, {s['num_scored']} scored "
+        f"({s['num_ended_at_release']} up to the release; not scored: "
+        f"{s['num_not_scored_no_contact']} no contact, {s['num_not_scored_no_support']} no "
+        f"support, {s['num_not_scored_free_fall']} free fall); success "
+        f"{s['success_rate']:.1f} % (SPIDER's {s['spider_success_rate']:.1f} % and carried "
+        f"{s['carried_rate']:.1f} %), lost {s['lost_rate']:.0f} %, mean object error "
         f"{100 * s['position_error_mean_m']:.1f} cm / {s['rotation_error_mean_rad']:.2f} rad, "
         f"held {100 * s['held_fraction']:.0f} % of the grasp; {s['num_frames']} frames, "
         f"{s['timing']['frames_per_second_one_core']:.0f} frames/s per core"

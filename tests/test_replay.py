@@ -1,5 +1,7 @@
 """Stage replay on the three-finger gripper, upside down over a box on a table: a hand that closes
-on the box and lifts it carries it, an open hand leaves it behind, results are deterministic."""
+on the box and lifts it carries it, an open hand leaves it behind, results are deterministic; a
+box the human lets go of is scored up to the release, one that falls in the hand or was not on
+anything before the grasp is not scored."""
 
 from __future__ import annotations
 
@@ -10,9 +12,19 @@ import pytest
 import trimesh
 
 from dexflow.hands import load_hand
+from dexflow.human.model import forward_keypoints
+from dexflow.io.sequence import Sequence
 from dexflow.objects.convex import write_convex_obj
 from dexflow.params import ReplayParams
-from dexflow.replay import ReplayWorld, grasp_window, replay_errors, sequence_result
+from dexflow.replay import (
+    ReplayWorld,
+    aggregate,
+    grasp_window,
+    replay_errors,
+    replay_sequence,
+    replay_window,
+    sequence_result,
+)
 
 from .test_hands import _gripper
 
@@ -226,3 +238,187 @@ def test_report_section_tabulates_each_method_and_plots_the_error(tmp_path):
     assert len(rows_md) == 1 and "| 1 | 100.0 | 100.0 | 0.0 | 3.1 |" in rows_md[0], rows_md
     assert (tmp_path / "figures" / "summary_replay.png").stat().st_size > 0
     assert _replay_section({}, {}, tmp_path / "figures", tmp_path / "f") == []
+
+
+# ------------------------------------------------------------------- what is scored, and what not
+
+G = 9.81
+DROP_M = 0.35  # lifted this high and let go: 8 frames of free fall at 30 fps before it lands
+
+
+def _recording(q: np.ndarray, poses: np.ndarray) -> Sequence:
+    """The recorded sequence: the box at ``poses (T, 4, 4)``, a human hand moving rigidly with
+    the base of ``q (T, dof)`` (its wrist at ``q[:, :3]``)."""
+    wrist = np.repeat(np.eye(4)[None], len(q), axis=0)
+    wrist[:, :3, 3] = q[:, :3]
+    keypoints = forward_keypoints(np.zeros((len(q), 20)), wrist)
+    return Sequence(keypoints, np.array(poses), "box.obj", "box", FPS)
+
+
+def _drop(scene) -> tuple[np.ndarray, np.ndarray, int]:
+    """The closed hand lifts the box ``DROP_M`` and holds still; the human lets go at frame
+    ``let_go``: the recorded box falls freely back onto its table and rests, the hand stays.
+    Returns the trajectory, the recorded box poses and ``let_go``."""
+    _, _, poses, _, closed, _, _ = scene
+    lift = np.concatenate([np.zeros(HOLD), np.linspace(0.0, DROP_M, LIFT), np.full(5, DROP_M)])
+    let_go = len(lift) - 1
+    t = np.arange(1, 25) / FPS
+    fall = np.maximum(DROP_M - 0.5 * G * t**2, 0.0)
+    box = np.repeat(poses[:1], len(lift) + len(fall), axis=0)
+    box[:, 2, 3] += np.concatenate([lift, fall])
+    q = _lift(closed, np.concatenate([lift, np.full(len(fall), DROP_M)]))
+    return q, box, let_go
+
+
+def test_a_box_let_go_of_is_scored_up_to_the_release(scene):
+    """After the release the recorded box falls onto the table while the robot's hand, still
+    closed, holds its copy up: scored to the last contact (found again at the end) it would end
+    35 cm off and fail; scored up to the release, where it left the hand, it was carried."""
+    _, world, *_ = scene
+    q, box, let_go = _drop(scene)
+    touching = np.zeros(len(q), bool)
+    touching[: let_go + 1] = touching[-3:] = True
+    rows, entry = replay_sequence(world, _recording(q, box), q, touching)
+    first_beyond = let_go + int(np.argmax(box[let_go:, 2, 3] < box[let_go, 2, 3] - 0.05))
+    assert entry["scored"] and entry["not_scored_reason"] is None and entry["replayed"]
+    assert entry["release_frame"] == first_beyond and entry["last_contact"] == len(q) - 1
+    assert entry["end"] == let_go and rows["frame"][-1] == let_go
+    assert len(rows["frame"]) == let_go + 1
+    assert entry["success"] and entry["carried"] and not entry["lost"]
+    assert entry["free_fall_frame"] == -1  # the fall comes after the release
+    to_last = world.replay(q, box, FPS, (0, 0, len(q) - 1))
+    before = sequence_result(to_last, 0, box, FPS, world.replay_params)
+    assert not before["success"] and before["position_error_final_m"] > 0.3
+
+
+def test_a_box_falling_while_in_contact_is_not_scored(scene):
+    """Contact found through the whole drop: the recording has a finger on a box in free fall
+    off the hand, which no replay reproduces. A hand putting the box down as fast (the demo's
+    do) carries it along: scored."""
+    _, world, *_ = scene
+    q, box, let_go = _drop(scene)
+    touching = np.ones(len(q), bool)
+    rows, entry = replay_sequence(world, _recording(q, box), q, touching)
+    assert not entry["scored"] and not entry["replayed"] and entry["frames"] == 0
+    assert entry["not_scored_reason"] == "free fall" and entry["release_frame"] == -1
+    # a span of 6 frames from the frame before the fall averages -0.75 g: within the tolerance
+    assert let_go - 1 <= entry["free_fall_frame"] <= let_go and len(rows["frame"]) == 0
+    lowered = q.copy()  # the hand comes down with the box, as fast as it falls
+    lowered[let_go + 1 :, 2] -= DROP_M - (box[let_go + 1 :, 2, 3] - box[0, 2, 3])
+    window = replay_window(touching, _recording(lowered, box), np.zeros(len(q)), ReplayParams())
+    assert window.scored and window.free_fall_frame == -1
+
+
+def _brought(scene, axis: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The box comes 10 cm along world ``axis`` over the 10 frames before the first contact,
+    then the closed hand lifts it. Returns the trajectory, box poses and contact frames."""
+    _, _, poses, _, closed, rise, _ = scene
+    before = 10
+    q = _lift(closed, np.concatenate([np.zeros(before), rise]))
+    box = np.repeat(poses[:1], len(q), axis=0)
+    box[:before, axis, 3] -= np.linspace(0.1, 0.0, before)
+    box[before:, 2, 3] += rise
+    return q, box, np.arange(len(q)) >= before
+
+
+def test_a_box_lifted_before_the_grasp_has_no_support_and_is_not_scored(scene):
+    """Someone else lifts the box 10 cm before the hand first touches it: the table the replay
+    puts under it there stands for nothing in the recording. Pushed 10 cm along the table
+    instead, it rested on it all along: scored."""
+    _, world, poses, *_ = scene
+    table_top = world.place_table(poses[0])
+    np.testing.assert_allclose(world.lowest_heights(poses[:1]), [table_top])
+    assert table_top == pytest.approx(poses[0, 2, 3] - BOX[2] / 2)
+    for axis, reason in [(2, "no support"), (0, None)]:
+        q, box, touching = _brought(scene, axis)
+        rows, entry = replay_sequence(world, _recording(q, box), q, touching)
+        assert entry["not_scored_reason"] == reason and entry["scored"] is (reason is None)
+        expected = 0.1 if axis == 2 else 0.0
+        assert entry["support_drift_m"] == pytest.approx(expected, abs=1e-9)
+        assert len(rows["frame"]) == (0 if reason else len(q) - 10 + 5)
+
+
+def test_held_sequences_are_replayed_exactly_as_before(scene):
+    """A lift with 5 lead frames, a gap in contact mid-lift (the box moving 7 cm with the hand
+    meanwhile: no release) and contact to the end: the rows and the entry are those of the
+    window from 5 frames before the first contact to the last."""
+    _, world, poses, opened, closed, rise, _ = scene
+    before = 10
+    shifted = np.concatenate([np.zeros(before), rise])
+    box = np.repeat(poses[:1], len(shifted), axis=0)
+    box[:, 2, 3] += shifted
+    final = np.zeros((len(shifted), 3), bool)
+    final[before:, :] = True
+    final[before + HOLD + 10 : before + HOLD + 18, :] = False
+    assert box[before + HOLD + 17, 2, 3] - box[before + HOLD + 9, 2, 3] > 0.05
+    window = grasp_window(final, world.replay_params.lead_frames)
+    assert window == (5, 10, len(shifted) - 1)
+    for fingers in (closed, opened):
+        q = _lift(fingers, shifted)
+        rows, entry = replay_sequence(world, _recording(q, box), q, final.any(axis=1))
+        plain = world.replay(q, box, FPS, window)
+        for key in plain:
+            np.testing.assert_array_equal(rows[key], plain[key], key)
+        result = sequence_result(plain, window[1], box, FPS, world.replay_params)
+        assert {k: entry[k] for k in result} == result
+        assert entry["scored"] and entry["release_frame"] == -1 and entry["end"] == window[2]
+
+
+def test_release_needs_the_box_to_leave_the_hand_not_only_contact():
+    """Out of contact for frames 10-19: the box moving with the hand, or still while the hand
+    moves off (put down), is no release; moving off a still hand is, the window ending at the
+    last contact before it. Where the hand was not tracked nothing tells: no release."""
+    frames = 30
+    touching = np.ones(frames, bool)
+    touching[10:20] = False
+    path = np.zeros((frames, 3))
+    path[10:, 0] = 0.012 * np.arange(1, frames - 9)  # 1.2 cm a frame from frame 10 on
+    still = np.zeros((frames, 3))
+    p = ReplayParams(lead_frames=0)
+
+    def window(hand: np.ndarray, box: np.ndarray, valid=None):
+        wrist = np.repeat(np.eye(4)[None], frames, axis=0)
+        wrist[:, :3, 3] = hand
+        poses = np.repeat(np.eye(4)[None], frames, axis=0)
+        poses[:, :3, 3] = box
+        kp = forward_keypoints(np.zeros((frames, 20)), wrist)
+        seq = Sequence(kp, poses, "box.obj", "box", FPS, valid=valid)
+        return replay_window(touching, seq, np.zeros(frames), p)
+
+    for hand, box in [(path, path), (path, still)]:
+        w = window(hand, box)
+        assert w.release_frame == -1 and w.end == frames - 1 and w.scored
+    w = window(still, path)
+    assert w.release_frame == 14 and w.end == 9 and w.last_contact == frames - 1  # 6 cm off
+    untracked = np.ones(frames, bool)
+    untracked[10:] = False
+    assert window(still, path, untracked).release_frame == -1
+
+
+def test_summary_rates_cover_the_scored_sequences_only(scene):
+    """A carried and a left-behind lift are scored; a free fall, a lift with no support and a
+    sequence without contact are counted apart, not averaged in."""
+    _, world, poses, opened, _, rise, _ = scene
+    q, box, let_go = _drop(scene)
+    released = np.arange(len(q)) <= let_go
+    released[-3:] = True  # in contact again at the end: the window ends at the release
+    entries = []
+    for touching in (released, np.ones(len(q), bool), np.zeros(len(q), bool)):
+        entries.append(replay_sequence(world, _recording(q, box), q, touching)[1])
+    held, lifted, touching = _brought(scene, 2)
+    entries.append(replay_sequence(world, _recording(held, lifted), held, touching)[1])
+    let_loose = _lift(opened, rise)
+    left = replay_sequence(world, _recording(let_loose, poses), let_loose, np.ones(len(rise)))
+    entries.append(left[1])
+    reasons = [e["not_scored_reason"] for e in entries]
+    assert reasons == [None, "free fall", "no contact", "no support", None]
+    summary = aggregate(entries)
+    assert summary["num_scored"] == summary["num_replayed"] == 2
+    assert summary["num_not_scored"] == 3 and summary["num_ended_at_release"] == 1
+    for reason in ("no_contact", "no_support", "free_fall"):
+        assert summary[f"num_not_scored_{reason}"] == 1
+    assert summary["success_rate"] == 50.0 and summary["lost_rate"] == 50.0
+    scored = [entries[0], entries[4]]
+    for key in ("position_error_mean_m", "held_fraction", "static_error_final_m"):
+        assert summary[key] == pytest.approx(np.mean([e[key] for e in scored])), key
+    assert np.isnan(aggregate(entries[1:4])["success_rate"])
