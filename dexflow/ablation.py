@@ -21,6 +21,13 @@ writes (``data/metrics/sequences.csv``; definitions in :mod:`dexflow.metrics`), 
 aggregate of ``reports/metrics/metrics.json`` (velocity KL pools the speeds, ``pd_max_mm`` is a
 maximum) can differ from the mean shown here. Aggregates that exist only pooled (contact
 precision, recall and flicker; retarget speed) are shown without a spread.
+
+Which runs are compared. Two machines can give different numbers for the same parameters (a
+library version, the CPU), so only runs of one machine are compared: every stage of the default
+and of the experiment must have been made on the same machine, as their ``reports/timing``
+records say (:mod:`dexflow.provenance`). The suite reruns here whatever this machine did not
+make (the project's outputs committed from elsewhere included); the report states the machine,
+and lists any experiment it cannot compare with the reason.
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dexflow import provenance, stats
 from dexflow.errors import ConfigError
 from dexflow.io.atomic import atomic_path, save_json
 from dexflow.io.layout import Layout
@@ -57,7 +65,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT = "default"  # the experiment without overrides: what every other one is compared to
 SUITE_FILE = "suite.json"  # in an experiment's directory: the code digest it ran with
-CONFIDENCE = 0.95
+CONFIDENCE = stats.CONFIDENCE
 
 
 @dataclass(frozen=True)
@@ -169,6 +177,8 @@ class ExperimentResult:
         rows: The per-sequence rows of ``sequences.csv`` (strings as read).
         pooled: Flat numbers of ``reports/metrics/*.json`` (``contact.precision``) and
             ``reports/timing/*.json`` (``timing.<stage>.frames_per_second``).
+        stages: Per stage who made its outputs (:func:`dexflow.provenance.stages_of`:
+            machine, commit; None where not recorded).
     """
 
     name: str
@@ -176,6 +186,12 @@ class ExperimentResult:
     error: str | None = None
     rows: list[dict[str, str]] = field(default_factory=list)
     pooled: dict[str, float] = field(default_factory=dict)
+    stages: dict[str, dict | None] = field(default_factory=dict)
+
+    @property
+    def machine(self) -> str | None:
+        """The machine id that made every stage's outputs (None: not recorded, or several)."""
+        return provenance.machine_of(self.stages)
 
 
 def _numbers(tree, prefix: str) -> dict[str, float]:
@@ -215,8 +231,16 @@ def load_result(job: Path, name: str | None = None) -> ExperimentResult:
     ):
         for path in sorted(folder.glob("*.json")):
             stem = "" if path.stem == "metrics" else f"{path.stem}."
-            pooled.update(_numbers(json.loads(path.read_text(encoding="utf-8")), prefix + stem))
-    return ExperimentResult(name, "complete", None, rows, pooled)
+            content = json.loads(path.read_text(encoding="utf-8"))
+            if prefix:  # the speeds, not where the stage ran
+                content = {k: v for k, v in content.items() if k not in _RECORD_KEYS}
+            pooled.update(_numbers(content, prefix + stem))
+    stages = provenance.stages_of(layout.reports / "metrics", layout.reports / "timing")
+    return ExperimentResult(name, "complete", None, rows, pooled, stages)
+
+
+# The keys of a reports/timing record that say where the stage ran (dexflow.provenance).
+_RECORD_KEYS = ("provenance", "metrics_digest", "made")
 
 
 @dataclass(frozen=True)
@@ -257,21 +281,17 @@ def _column(rows: list[dict[str, str]], method: str, metric: str) -> dict[str, f
 
 
 def compare(default: ExperimentResult, other: ExperimentResult, method: str, metric: str):
-    """The paired comparison of ``metric`` for ``method``, or None without common sequences."""
-    from scipy.stats import t as student
-
+    """The paired comparison of ``metric`` for ``method``, or None without common sequences.
+    The interval is :func:`dexflow.stats.mean_interval`'s of the per-sequence differences."""
     a, b = _column(default.rows, method, metric), _column(other.rows, method, metric)
     common = sorted(set(a) & set(b))
     if not common:
         return None
     x = np.array([a[s] for s in common])
     y = np.array([b[s] for s in common])
-    diff = y - x
-    n = len(common)
-    half = float("nan")
-    if n > 1:
-        half = float(student.ppf(0.5 + CONFIDENCE / 2, n - 1) * diff.std(ddof=1) / math.sqrt(n))
-    return Comparison(n, float(x.mean()), float(y.mean()), float(diff.mean()), half)
+    diff = stats.mean_interval(y - x, CONFIDENCE)
+    half = (diff.high - diff.low) / 2  # NaN for one sequence
+    return Comparison(len(common), float(x.mean()), float(y.mean()), diff.value, half)
 
 
 def _fmt(value: float) -> str:
@@ -337,6 +357,12 @@ def write_suite_report(
     """Write the suite's report (one section per question) and the CSV of every comparison
     beside it (``<out>.csv``).
 
+    Only runs of one machine are compared: an experiment is compared to the default only where
+    every stage of both was made on the same machine (:attr:`ExperimentResult.machine`); one
+    made elsewhere, or without a record of where, is listed as not compared, and with the
+    default's machine unknown nothing is. :func:`run_suite` reruns what this machine did not
+    make, so that its reports compare everything.
+
     Args:
         results: By experiment name; those missing are reported as queued.
         command: The command that made the report (quoted in it).
@@ -350,6 +376,12 @@ def write_suite_report(
         f"# dexflow ablations: the {suite} suite",
         "",
         f"Generated by `{command}` on {data}.",
+        "",
+        "Written by:",
+        "",
+        *provenance.markdown(None, data),
+        "",
+        _machine_statement(default),
         "",
         "Each experiment (`conf/experiment/<name>.yaml`) ran the whole pipeline and is compared "
         "to the default sequence by sequence. A cell reads *value (Δ ± ci)*: the mean over "
@@ -369,8 +401,8 @@ def write_suite_report(
     lines += [
         "## Experiments",
         "",
-        "| experiment | status | sequences | note |",
-        "|---|---|---|---|",
+        "| experiment | status | sequences | note | machine |",
+        "|---|---|---|---|---|",
     ]
     for name in names:
         r = results[name]
@@ -378,7 +410,10 @@ def write_suite_report(
         note = (r.error or "").replace("|", "/").replace("\n", " ")
         if r.status == "queued":
             note = (r.error or "not run yet") + " (rerun the command to run it)"
-        lines.append(f"| `{name}` | {r.status} | {count} | {note} |")
+        elif r.status == "complete" and name != DEFAULT and not _same_machine(default, r):
+            note = _not_compared(default, r)
+        machine = "—" if r.status != "complete" else r.machine or "not recorded"
+        lines.append(f"| `{name}` | {r.status} | {count} | {note} | {machine} |")
     with atomic_path(out_md) as tmp:
         tmp.write_text("\n".join(lines).rstrip() + "\n", encoding="utf-8")
     columns = ["question", "experiment", "method", "metric", "sequences", "default", "value",
@@ -390,9 +425,46 @@ def write_suite_report(
     return out_md
 
 
+def _same_machine(default: ExperimentResult, other: ExperimentResult) -> bool:
+    """Both complete and every stage of both made on one recorded machine."""
+    return (
+        default.status == other.status == "complete"
+        and default.machine is not None
+        and other.machine == default.machine
+    )
+
+
+def _not_compared(default: ExperimentResult, other: ExperimentResult) -> str:
+    """Why a complete experiment is not compared to the default (a table note)."""
+    if default.machine is None:
+        return "not compared: the default's machine is not recorded"
+    where = f"made on machine {other.machine}" if other.machine else "not recorded where made"
+    return f"not compared: {where}, the default on {default.machine}; rerun it here"
+
+
+def _machine_statement(default: ExperimentResult) -> str:
+    """Which machine the comparisons are made on, or why there are none."""
+    if default.status != "complete":
+        return "No comparison: the default has not finished."
+    if default.machine is None:
+        return (
+            "**No comparison: the default's machine is not recorded** (no `reports/timing` "
+            "record matches its metrics, or its stages ran on several machines): a difference "
+            "to it could be the machine's. Rerun the suite on this machine."
+        )
+    here = " (this machine)" if default.machine == provenance.machine_id() else ""
+    return (
+        f"Same machine: the default and every experiment compared to it ran, every stage, on "
+        f"machine {default.machine}{here}. An experiment made elsewhere, or without a record "
+        "of where, is not compared (see *Experiments*)."
+    )
+
+
 def _question_section(q: Question, default, results, csv_rows: list[dict]) -> list[str]:
     if default.status != "complete":
         return [f"No numbers: the default is {default.status} ({default.error or 'not run'}).", ""]
+    if default.machine is None:
+        return ["No numbers: the default's machine is not recorded (see above).", ""]
     multi = len(q.methods) > 1
     head = ["experiment", *(["method"] if multi else []), *(_label(m) for m in q.metrics)]
     lines = [] if multi else [f"Method: {q.methods[0]}.", ""]
@@ -408,6 +480,9 @@ def _question_section(q: Question, default, results, csv_rows: list[dict]) -> li
             r = results[name]
             if r.status != "complete":
                 missing.append(f"`{name}` ({r.status})")
+                continue
+            if not _same_machine(default, r):
+                missing.append(f"`{name}` (made on another machine, or not recorded where)")
                 continue
             comparisons = {m: compare(default, r, method, m) for m in q.metrics}
             cells = [_cell(comparisons[m]) for m in q.metrics]
@@ -433,7 +508,7 @@ def _question_section(q: Question, default, results, csv_rows: list[dict]) -> li
 
 def _pooled_table(q: Question, default: ExperimentResult, results) -> list[str]:
     """The question's pooled aggregates (no per-sequence value, so no spread)."""
-    done = [default, *(results[n] for n in q.experiments if results[n].status == "complete")]
+    done = [default, *(results[n] for n in q.experiments if _same_machine(default, results[n]))]
     lines = [
         "Pooled over all sequences (no per-sequence value, so no spread):",
         "",
@@ -473,10 +548,13 @@ def run_suite(
     """Run (or resume) every experiment of ``suite`` and return their results.
 
     The default runs first, in ``jobs_dir/default``, reusing the project's outputs where its
-    params match the project's ``params.yaml`` (the demo after ``dvc repro``). Every other
-    experiment runs in ``jobs_dir/<name>`` reusing the default's outputs where its params leave
-    a stage unchanged (``refine_no_pen`` reruns refine and what follows it). An experiment whose
-    directory holds a finished run with the same composed params is not run again.
+    params match the project's ``params.yaml`` (the demo after ``dvc repro``) and this machine
+    made them (the project's ``reports/timing`` says so; outputs made elsewhere, e.g. committed
+    from another machine, are made again here). Every other experiment runs in
+    ``jobs_dir/<name>`` reusing the default's outputs where its params leave a stage unchanged
+    (``refine_no_pen`` reruns refine and what follows it). An experiment whose directory holds
+    a finished run with the same composed params and code, made on this machine, is not run
+    again. So every experiment and the default it is compared to come from this machine.
 
     Args:
         project: The project root (``conf/``, ``stages/``, ``dvc.yaml``, ``params.yaml``).
@@ -491,6 +569,7 @@ def run_suite(
     project, jobs_dir = Path(project).resolve(), Path(jobs_dir).resolve()
     names = suite_experiments(suite)
     code = code_digest()
+    machine = provenance.machine_id()
     results: dict[str, ExperimentResult] = {}
     for i, name in enumerate(names, 1):
         job = jobs_dir / name
@@ -507,7 +586,8 @@ def run_suite(
                 results[name] = load_result(job, name)
                 log.error("[%d/%d] %s: %s", i, len(names), name, exc)
                 continue
-            finished = load_result(job).status == "complete"
+            before = load_result(job)
+            finished = before.status == "complete" and before.machine == machine
             if finished and _same_params(composed, job / "params.yaml") and _code(job) == code:
                 log.info("[%d/%d] %s: finished before, reused", i, len(names), name)
             else:
@@ -517,7 +597,7 @@ def run_suite(
                 logging.getLogger("dexflow").addHandler(handler)
                 (job / SUITE_FILE).unlink(missing_ok=True)
                 try:
-                    run_job(OmegaConf.load(composed), base, job)
+                    run_job(OmegaConf.load(composed), base, job, machine=machine)
                 finally:
                     logging.getLogger("dexflow").removeHandler(handler)
                     handler.close()

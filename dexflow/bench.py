@@ -446,16 +446,25 @@ def bench_pipeline(
 
 
 def _machine_line() -> str:
-    """The benchmark reports' line saying where and how they were measured."""
-    import os
-    import platform
+    """The benchmark reports' line saying how they were measured (the machine itself is in the
+    provenance block :func:`_publish` adds)."""
+    from dexflow import provenance
 
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}"
-    return f"Machine: {machine}. Wall-clock seconds; other load on the machine counts."
+    return (
+        f"Machine: {provenance.machine_id()} (see *Measured at*). Wall-clock seconds; other load "
+        "on the machine counts."
+    )
 
 
 def _publish(text: str, out: str | None) -> None:
-    """Print a benchmark report and write it to ``out`` (atomically; None: print only)."""
+    """Print a benchmark report and write it to ``out`` (atomically; None: print only), with
+    where it was measured under its title: the commit and the machine
+    (:func:`dexflow.provenance.markdown`; the data is in the report's first paragraph)."""
+    from dexflow import provenance
+
+    title, _, rest = text.partition("\n")
+    block = "\n".join(["", "Measured at:", "", *provenance.markdown()])
+    text = f"{title}\n{block}\n{rest}"
     print(text)
     if out:
         from dexflow.io.atomic import atomic_path
@@ -1022,11 +1031,16 @@ def _real_table(
 ) -> str:
     command = f"dexflow bench real {source}" + (f" --subset {sequences}" if sequences else "")
     command += "".join(f" --set {o}" for o in overrides)
+    first = next(iter(results.values()), {})
+    data = f"{first.get('sequences', '?')} sequences, {first.get('frames', '?')} frames"
     lines = [
         "# dexflow on real captures",
         "",
-        f"`{command}`: the pipeline at the project's defaults, per hand; metrics as defined in "
-        "`dexflow/metrics.py` (observed frames only for the errors).",
+        f"`{command}`: the pipeline at the project's defaults, per hand, on the converted data "
+        f"in `{source}` ({data}); metrics as defined in `dexflow/metrics.py` (observed frames "
+        "only for the errors).",
+        "",
+        _machine_line(),
         "",
         "| hand | method | " + " | ".join(label for _, label, _ in REAL_COLUMNS) + " |",
         "|---" * (len(REAL_COLUMNS) + 2) + "|",

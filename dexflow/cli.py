@@ -16,8 +16,9 @@ Subcommands:
   report summary                    reports/summary.md from the metrics (the `report` stage)
   report ablation --suite paper [--set KEY=VALUE ...] [--no-run]
                                     run the suite's named experiments, reports/ablation.md
-  report ablation [--dvc] [--rev REV | --all-commits] [--multirun DIR ...]
+  report ablation [--dvc] [--rev REV | --all-commits] [--multirun DIR ...] [--any-machine]
                                     reports/sweep.md across DVC experiments or a multirun
+                                    (runs of this machine only, unless --any-machine)
 """
 
 from __future__ import annotations
@@ -312,7 +313,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
         show = json.loads(done.stdout or "[]")
         if args.rev:  # the workspace is not derived from that baseline
             show = [node for node in show if node.get("rev") != "workspace"]
-        experiments += report.collect_dvc(show)
+        experiments += report.collect_dvc(show, Layout().reports / "timing")
     for folder in args.multirun or []:
         if not Path(folder).is_dir():
             logging.error("%s: no such multirun directory", folder)
@@ -321,8 +322,11 @@ def _cmd_report(args: argparse.Namespace) -> int:
     if not experiments:
         logging.error("no experiments found (dvc exp show and --multirun directories are empty)")
         return 1
+    from dexflow import provenance
+
     out = Path(args.out) if args.out else Layout().reports / "sweep.md"
-    out = report.write_ablation(experiments, out, out.parent / "figures")
+    machine = None if args.any_machine else provenance.machine_id()
+    out = report.write_ablation(experiments, out, out.parent / "figures", machine=machine)
     print(f"wrote {out} ({len(experiments)} experiments)")
     return 0
 
@@ -510,6 +514,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--rev", help="ablation: experiments derived from this baseline commit (default HEAD)"
     )
     p.add_argument("--multirun", nargs="*", help="ablation: Hydra multirun directories")
+    p.add_argument(
+        "--any-machine", action="store_true",
+        help="ablation without --suite: also compare runs made on other machines or not "
+        "recorded where (flagged); by default only runs whose every stage this machine made",
+    )  # fmt: skip
     p.add_argument("--out", help="output Markdown file")
     p.set_defaults(func=_cmd_report)
 

@@ -1,11 +1,16 @@
 """Reports generated from the metrics: the paper-style summary and the ablation across experiments.
 
 - :func:`write_summary` -> ``reports/summary.md`` (+ PNG figures): the paper's Table II/III layout
-  (baseline vs DexFlow vs DexFlow + refinement) beside the published numbers, contact quality,
-  and a per-object breakdown.
+  (baseline vs DexFlow vs DexFlow + refinement) beside the published numbers, each rate and mean
+  over sequences with its 95 % interval (:mod:`dexflow.stats`), contact quality, and a
+  per-object breakdown.
 - :func:`write_ablation` -> ``reports/sweep.md`` (+ PNG figures): every experiment found in
   ``dvc exp show --json`` and/or Hydra multirun directories, one table and one plot per swept
-  parameter, best values in bold. Failed or incomplete experiments are listed, never dropped.
+  parameter, best values in bold. Failed or incomplete experiments are listed, never dropped;
+  runs of another machine than the one compared are listed, not compared.
+
+Both open with their provenance (:mod:`dexflow.provenance`): the commit and machine they were
+written on, the data, and the machine(s) the numbers were made on.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dexflow import provenance, stats
 from dexflow.io.layout import Layout
 from dexflow.params import PipelineParams
 from dexflow.runner import StageSpec
@@ -100,6 +106,7 @@ def write_project_summary(
         out_md or layout.summary_report, layout.figures, data_name=data_name,
         stage_summary=layout.metrics.summary,
         replay_dirs={m: layout.replay(m).root for m in METHOD_LABELS},
+        timing_dir=layout.reports / "timing",
     )  # fmt: skip
 
 
@@ -112,8 +119,16 @@ def write_summary(
     data_name: str | None = None,
     stage_summary: str | Path | None = None,
     replay_dirs: dict[str, str | Path] | None = None,
+    timing_dir: str | Path | None = None,
 ) -> Path:
     """Write ``summary.md`` and its figures from the metrics stage's outputs.
+
+    The report opens with its provenance (:mod:`dexflow.provenance`): the commit and machine
+    it is written on, the data, and the machines and commits the stages behind its numbers ran
+    on (they may have run earlier, elsewhere: DVC restores outputs from its cache), flagged
+    when they differ. Rates and means over sequences are given with their 95 % intervals
+    (:mod:`dexflow.stats`) in *Spread over sequences*. Same inputs, machine and commit: the same
+    bytes.
 
     Args:
         metrics_dir: ``reports/metrics`` (``metrics.json``, ``contact.json``, ...).
@@ -127,6 +142,8 @@ def write_summary(
             (by which stage, why) and the warnings, listed in the report.
         replay_dirs: Per method the replay stage's directory (``data/replay/<label>``): the
             object's error over time is plotted from its sequences (None or absent: no plot).
+        timing_dir: ``reports/timing``: the stages' records of where they ran (None: not
+            recorded).
     """
     import pandas as pd
 
@@ -150,14 +167,18 @@ def write_summary(
         f"Data: **{data}**. Hand: **{hand}**. Sequences: {_sequence_counts(metrics)}. "
         "Definitions: README, *Metrics*.",
         "",
+        *_provenance_section(metrics, table, data, metrics_dir, timing_dir),
         *_dropped_section(metrics, accounts),
         "## Grasp quality (paper Table II layout)",
         "",
         *_method_table(metrics, TABLE_II, paper=True),
         "",
         "Paper rows: DexFlow on DexYCB with ShadowHand, as published (the paper's PD/SPD/CD "
-        "units are given as printed; its FVR is undefined there). " + _data_caveat(demo, data),
+        "units are given as printed; its FVR is undefined there). "
+        + _data_caveat(demo, data)
+        + " The 95 % interval of each value: *Spread over sequences*.",
         "",
+        *_spread_section(table, stage),
         f"## Simulation ({_engines_title(stage)}, six push directions)",
         "",
         *_simulation_table(stage),
@@ -304,6 +325,175 @@ def _read_json(path: str | Path | None) -> dict:
     if path is None or not Path(path).is_file():
         return {}
     return json.loads(Path(path).read_text())
+
+
+def _provenance_section(
+    metrics: dict, table, data: str, metrics_dir: Path, timing_dir: str | Path | None
+) -> list[str]:
+    """Where the report was written (commit, machine), on which data, and where the stages
+    behind its numbers ran, flagged when they differ (:mod:`dexflow.provenance`)."""
+    frames = metrics.get("num_frames")
+    if frames is None and len(table) and "frames" in table.columns:
+        frames = int(table[table["method"] == table["method"].iloc[0]]["frames"].sum())
+    sequences = metrics.get("num_input_sequences", metrics.get("num_sequences"))
+    here = provenance.current()
+    lines = [
+        "## Provenance",
+        "",
+        "Written by:",
+        "",
+        *provenance.markdown(here, provenance.data_text(data, sequences, frames)),
+        "",
+        *_stages_provenance(metrics_dir, timing_dir, here),
+        "",
+    ]
+    return lines
+
+
+def _stages_provenance(metrics_dir: Path, timing_dir, here: dict) -> list[str]:
+    """Where the stages whose metrics the report shows ran: one line when one machine and one
+    commit made them all, else a table per stage, with a warning when several machines (or an
+    unknown one) made them. Several commits alone are how DVC works (it reruns only the stages
+    whose inputs changed), stated without a warning."""
+    made = provenance.stages_of(metrics_dir, timing_dir)
+    known = {tag: m for tag, m in made.items() if m}
+    unknown = sorted(tag for tag, m in made.items() if not m)
+    facts = provenance.machine_facts(provenance.read_records(timing_dir))
+    machines = sorted({str(m.get("machine_id")) for m in known.values()})
+    commits = {(m.get("commit"), m.get("dirty")) for m in known.values()}
+    why_unknown = (
+        "no `reports/timing` record matches the metrics they hold: restored from git or the DVC "
+        "cache, made elsewhere, or run before dexflow recorded it"
+    )
+    if not made:
+        return ["The stages: none found in `reports/metrics`."]
+    if not known:
+        return [
+            f"**The stages: machine and commit not recorded for any of the {len(made)}** "
+            f"({why_unknown}); rerun them here (`dvc repro --force`) to know where the numbers "
+            "come from."
+        ]
+    if len(machines) == 1 and len(commits) == 1 and not unknown:
+        ((commit, dirty),) = commits
+        lines = [
+            f"The stages: all {len(made)} ran on machine {machines[0]}, at commit {commit} "
+            f"(uncommitted changes: {_yes_no(dirty)})."
+        ]
+        if machines[0] != here["machine_id"]:
+            lines += ["", f"- machine {machines[0]}: {_machine_text(facts, machines[0])}"]
+        return lines
+    if len(machines) > 1 or unknown:
+        head = (
+            f"**The stages ran on {len(machines)} machine(s)"
+            + (f", and {len(unknown)} did not record where ({why_unknown})" if unknown else "")
+            + "**: numbers made on different machines may differ for that reason alone; rerun "
+            "them here (`dvc repro --force`) before comparing them."
+        )
+    else:
+        head = (
+            f"The stages ran on machine {machines[0]}, at {len(commits)} commits (DVC reruns only "
+            "the stages whose inputs changed):"
+        )
+    lines = [
+        head,
+        "",
+        "| stage | machine | commit | uncommitted changes |",
+        "|---|---|---|---|",
+    ]
+    for tag, m in made.items():
+        if m:
+            commit = str(m.get("commit") or provenance.UNKNOWN)[:12]
+            cells = [str(m.get("machine_id")), commit, _yes_no(m.get("dirty"))]
+        else:
+            cells = ["not recorded", "—", "—"]
+        lines.append(f"| {tag} | " + " | ".join(cells) + " |")
+    lines.append("")
+    lines += [f"- machine {m}: {_machine_text(facts, m)}" for m in machines]
+    return lines
+
+
+def _machine_text(facts: dict, machine: str) -> str:
+    if machine in facts:
+        return provenance.describe_machine(facts[machine])
+    return "no description recorded"
+
+
+def _yes_no(flag) -> str:
+    return {True: "yes", False: "no"}.get(flag, provenance.UNKNOWN)
+
+
+# Per-sequence columns of sequences.csv given with their interval: key -> (digits, rate).
+SPREAD_COLUMNS = {
+    "ssr": (1, True), "ssr_bench": (1, True), "spd_mm": (2, False), "pd_mm": (2, False),
+    "cd_mm": (2, False), "fvr": (3, False), "rms_acc": (2, False),
+    "time_aligned_cd_mm": (2, False), "keypoint_error_mm": (2, False),
+}  # fmt: skip
+REPLAY_RATES = {
+    "success_rate": "replay success %",
+    "spider_success_rate": "replay SPIDER %",
+    "carried_rate": "replay carried %",
+    "lost_rate": "replay lost %",
+}
+
+
+def _spread_section(table, stage: dict) -> list[str]:
+    """Each rate and mean over sequences with its 95 % interval (:mod:`dexflow.stats`): the
+    columns of ``sequences.csv``, the simulate stage's SSRs that are not in it (without the
+    penetration rule, per engine), the replay stage's rates."""
+    rows: list[tuple[str, dict[str, stats.Interval | None], int]] = []
+    for key, (digits, rate) in SPREAD_COLUMNS.items():
+        if key not in getattr(table, "columns", ()):
+            continue
+        cells = {}
+        for m in METHOD_LABELS:
+            values = table.loc[table["method"] == m, key].to_numpy(dtype=float)
+            found = stats.sequence_interval(values, rate=rate, lower=0.0)  # none is negative
+            cells[m] = found if len(values) else None
+        rows.append((METRICS[key][0], cells, digits))
+    simulated = _simulated(stage)
+    engines = _engines(stage)
+    keys = {"ssr_raw": "SSR without the rule %",
+            "ssr_bench_raw": "SSR DexGraspBench without the rule %"}  # fmt: skip
+    if len(engines) > 1:
+        for engine in engines:
+            keys |= {f"ssr_{engine}": f"SSR % ({engine})",
+                     f"ssr_bench_{engine}": f"SSR DexGraspBench % ({engine})"}  # fmt: skip
+    for key, label in keys.items():
+        cells = {m: stats.rate_of_sequences(simulated.get(m, {}).get(key),
+                                            simulated.get(m, {}).get("num_ok"))
+                 for m in METHOD_LABELS}  # fmt: skip
+        if any(cells.values()):
+            rows.append((label, cells, 1))
+    replayed = {m: stage.get(f"replay_{m}") or {} for m in METHOD_LABELS}
+    for key, label in REPLAY_RATES.items():
+        cells = {m: stats.rate_of_sequences(r.get(key), r.get("num_replayed"))
+                 for m, r in replayed.items()}  # fmt: skip
+        if any(cells.values()):
+            rows.append((label, cells, 1))
+    if not rows:
+        return []
+    lines = [
+        "## Spread over sequences (95 % intervals)",
+        "",
+        "Each cell: value [low, high], the 95 % interval over the sequences (`dexflow/stats.py`): "
+        "Wilson's score interval for a rate of sequences (each sequence held or not), Student's "
+        "t for a mean over sequences. The values are means over the per-sequence rows of "
+        "`data/metrics/sequences.csv` (the tables' aggregates, but for a pooled or maximal one) "
+        "and the simulate and replay stages' rates over the sequences they counted. Velocity KL "
+        "pools the speeds of all sequences, and the shares of frames in *Simulation* pool "
+        "frames: they have no per-sequence value here, so no interval.",
+        "",
+        "| | " + " | ".join(METHOD_LABELS) + " | sequences | interval |",
+        "|---" * (len(METHOD_LABELS) + 3) + "|",
+    ]
+    for label, cells, digits in rows:
+        found = [c for c in cells.values() if c is not None]
+        counts = [str(c.n) for c in found]
+        n = counts[0] if len(set(counts)) == 1 else ", ".join(counts)
+        kinds = ", ".join(sorted({"Wilson" if c.method == "wilson" else "t" for c in found}))
+        texts = ["—" if c is None else c.text(digits) for c in cells.values()]
+        lines.append(f"| {label} | " + " | ".join(texts) + f" | {n} | {kinds} |")
+    return [*lines, ""]
 
 
 def _sequence_counts(metrics: dict) -> str:
@@ -543,13 +733,32 @@ def _figures(metrics: dict, table, plots_dir: Path, figures_dir: Path) -> list[t
 
 @dataclass
 class Experiment:
-    """One run of the pipeline: its parameters (flat, dotted keys) and metrics (flat)."""
+    """One run of the pipeline: its parameters (flat, dotted keys), metrics (flat) and, per
+    stage, who made its outputs (:func:`dexflow.provenance.made_by`: machine, commit; None
+    where not recorded)."""
 
     name: str
     source: str
     params: dict[str, object] = field(default_factory=dict)
     metrics: dict[str, float] = field(default_factory=dict)
     error: str | None = None
+    stages: dict[str, dict | None] = field(default_factory=dict)
+
+    @property
+    def machine(self) -> str | None:
+        """The machine id that made every stage's outputs; None if one is not recorded or
+        several machines made them."""
+        return provenance.machine_of(self.stages)
+
+    def machine_text(self) -> str:
+        """The machine id, ``not recorded`` or ``mixed: a, b``."""
+        if self.machine:
+            return self.machine
+        ids = sorted({str(s["machine_id"]) for s in self.stages.values() if s})
+        if len(ids) > 1:
+            return "mixed: " + ", ".join(ids)
+        unknown = sorted(tag for tag, s in self.stages.items() if not s)
+        return "not recorded" + (f" ({', '.join(unknown)})" if ids and unknown else "")
 
 
 def _flatten(tree, prefix: str = "") -> dict:
@@ -576,8 +785,16 @@ def _metrics_only(files: dict) -> dict[str, float]:
     return out
 
 
-def collect_dvc(show: list | dict) -> list[Experiment]:
-    """Experiments from the output of ``dvc exp show --json`` (DVC 3)."""
+def collect_dvc(show: list | dict, timing_dir: str | Path | None = None) -> list[Experiment]:
+    """Experiments from the output of ``dvc exp show --json`` (DVC 3).
+
+    Args:
+        show: The parsed output.
+        timing_dir: The workspace's ``reports/timing``: the machine that made each stage's
+            metrics is known where its record lists their digest (the stages that ran in this
+            workspace, ``dvc exp run`` ones included); None: no machine is known.
+    """
+    records = provenance.read_records(timing_dir)
     found: list[Experiment] = []
 
     def visit(node, name_hint: str, state: str | None = None) -> None:
@@ -596,13 +813,21 @@ def collect_dvc(show: list | dict) -> list[Experiment]:
             params = {}
             for content in (data.get("params") or {}).values():
                 params.update(_flatten(content.get("data", {})))
-            metrics = _metrics_only(data.get("metrics") or {})
+            files = data.get("metrics") or {}
+            metrics = _metrics_only(files)
+            stages = {
+                Path(path).stem: provenance.made_by(
+                    content.get("data", content), records.get(Path(path).stem)
+                )
+                for path, content in sorted(files.items())
+                if isinstance(content, dict)
+            }
             error = node.get("error") or data.get("error")
             if isinstance(error, dict):
                 error = error.get("msg") or json.dumps(error)
             if error is None and state not in (None, "success"):
                 error = f"{state}, not finished (its metrics would be the baseline's)"
-            found.append(Experiment(str(name), "dvc", params, metrics, error))
+            found.append(Experiment(str(name), "dvc", params, metrics, error, stages))
         for key in ("experiments", "revs"):
             if key in node:
                 visit(node[key], name_hint, state)
@@ -626,7 +851,9 @@ def collect_dvc(show: list | dict) -> list[Experiment]:
 
 def collect_multirun(root) -> list[Experiment]:
     """Experiments from a Hydra multirun directory (one job per subdirectory holding
-    ``params.yaml``, ``reports/metrics/*.json`` and ``sweep_status.json``)."""
+    ``params.yaml``, ``reports/metrics/*.json``, ``reports/timing/*.json`` (where each stage
+    ran; :func:`dexflow.sweep.run_job` copies the records of the stages it reuses) and
+    ``sweep_status.json``)."""
     import yaml
 
     root = Path(root)
@@ -643,7 +870,8 @@ def collect_multirun(root) -> list[Experiment]:
         if status.get("status") not in (None, "ok"):
             error = f"stage {status.get('stage')}: {status.get('error')}"
         name = str(job.relative_to(root)) if job != root else root.name
-        found.append(Experiment(name, "multirun", params, _metrics_only(files), error))
+        stages = provenance.stages_of(job / "reports" / "metrics", job / "reports" / "timing")
+        found.append(Experiment(name, "multirun", params, _metrics_only(files), error, stages))
     return found
 
 
@@ -695,9 +923,21 @@ def _reference(factor: _Factor, experiments: list[Experiment]) -> str:
     return max(dict.fromkeys(values), key=values.count)
 
 
-def write_ablation(experiments: list[Experiment], out_md, figures_dir, metrics=None) -> Path:
+def write_ablation(
+    experiments: list[Experiment],
+    out_md,
+    figures_dir,
+    metrics=None,
+    machine: str | None = None,
+) -> Path:
     """Write the ablation report: per swept parameter a table (one row per value) and a plot of
     each metric against it; the best value per metric in bold.
+
+    With ``machine``, only experiments whose every stage was made on that machine are compared
+    (the reference values' runs included): one made elsewhere, or without a record of where
+    (:attr:`Experiment.machine`), is listed as not compared, since a difference between
+    machines would read as the parameter's. Without, every complete experiment is compared and
+    the report says whether they are known to come from one machine.
 
     Parameters that change together (all ``hand.*`` keys of ``hand=allegro``) are one factor,
     shown once under its most telling key. With several factors swept, each factor's table holds
@@ -709,12 +949,16 @@ def write_ablation(experiments: list[Experiment], out_md, figures_dir, metrics=N
         out_md: The Markdown file.
         figures_dir: Where the PNGs go.
         metrics: Flat metric keys to show; default: the paper's metrics for every method.
+        machine: The machine id (:func:`dexflow.provenance.machine_id`) whose runs are
+            compared; None: every complete run.
     """
     from dexflow.io.atomic import atomic_path
 
     out_md, figures_dir = Path(out_md), Path(figures_dir)
-    complete = [e for e in experiments if e.error is None and e.metrics]
-    broken = [e for e in experiments if e not in complete]
+    finished = [e for e in experiments if e.error is None and e.metrics]
+    complete = [e for e in finished if machine is None or e.machine == machine]
+    elsewhere = [e for e in finished if e not in complete]
+    broken = [e for e in experiments if e not in finished]
     if metrics is None:
         metrics = [
             f"{m}.{k}"
@@ -726,8 +970,15 @@ def write_ablation(experiments: list[Experiment], out_md, figures_dir, metrics=N
         "# dexflow sweep report",
         "",
         f"Generated by `dexflow report ablation` from {len(experiments)} experiments "
-        f"({len(complete)} complete, {len(broken)} failed or without metrics). "
+        f"({len(complete)} compared, {len(elsewhere)} not compared: made on another machine "
+        f"or not recorded where, {len(broken)} failed or without metrics). "
         "Best value per column in **bold**; ↑ higher is better, ↓ lower.",
+        "",
+        "Written by:",
+        "",
+        *provenance.markdown(None, _experiments_data(complete)),
+        "",
+        _machine_statement(complete, elsewhere, machine),
         "",
     ]
     factors = _factors(complete)
@@ -772,21 +1023,69 @@ def write_ablation(experiments: list[Experiment], out_md, figures_dir, metrics=N
         "",
         "| experiment | source | status | swept values | "
         + " | ".join(_metric_label(m) for m in overview)
-        + " |",
-        "|---" * (4 + len(overview)) + "|",
+        + " | machine |",
+        "|---" * (5 + len(overview)) + "|",
     ]
     for e in experiments:
-        status = "ok" if e in complete else f"failed: {e.error or 'no metrics'}"
+        if e in complete:
+            status = "ok"
+        elif e in elsewhere:
+            status = "not compared: " + (
+                f"made on machine {e.machine}" if e.machine else "not recorded on which machine"
+            )
+        else:
+            status = f"failed: {e.error or 'no metrics'}"
         values = ", ".join(f"{f.name}={e.params.get(f.name)}" for f in factors) or "—"
         cells = [_cell(e.metrics.get(m) if e in complete else None, 3) for m in overview]
         lines.append(
             f"| {e.name} | {e.source} | {status.replace('|', '/')} | {values} | "
             + " | ".join(cells)
-            + " |"
+            + f" | {e.machine_text()} |"
         )
     with atomic_path(out_md) as tmp:
         tmp.write_text("\n".join(lines).rstrip() + "\n")
     return out_md
+
+
+def _experiments_data(experiments: list[Experiment]) -> str:
+    """The data of the compared runs (name, sequences, frames), each distinct one once."""
+    texts = [
+        provenance.data_text(
+            e.params.get("data.name"),
+            e.metrics.get("num_input_sequences", e.metrics.get("num_sequences")),
+            e.metrics.get("num_frames"),
+        )
+        for e in experiments
+    ]
+    return "; ".join(dict.fromkeys(texts)) or "no run compared"
+
+
+def _machine_statement(complete: list[Experiment], elsewhere: list[Experiment], machine) -> str:
+    """Which machine the compared runs (the reference values' included) were made on."""
+    if machine is not None:
+        text = (
+            f"Compared: the runs whose every stage was made on machine {machine}"
+            + (" (this machine)" if machine == provenance.machine_id() else "")
+            + ", so every value, the reference's included, comes from that one machine."
+        )
+        if elsewhere:
+            text += (
+                f" {len(elsewhere)} made on another machine, or without a record of where, are "
+                "listed under *Experiments* and not compared: rerun them here."
+            )
+        return text
+    ids = {e.machine for e in complete}
+    if len(ids) == 1 and None not in ids:
+        return f"All {len(complete)} compared runs were made on machine {ids.pop()}."
+    known = sorted(i for i in ids if i)
+    unknown = sum(e.machine is None for e in complete)
+    return (
+        f"**Not checked to come from one machine**: made on {len(known)} known machine(s)"
+        + (f", {unknown} run(s) without a record of where" if unknown else "")
+        + "; a difference between runs of different machines may be the machines'. "
+        "`dexflow report ablation` compares only runs of this machine unless given "
+        "`--any-machine`."
+    )
 
 
 def _ablation_table(values: list[str], groups: dict, table: dict, shown: list[str]) -> list[str]:

@@ -12,8 +12,8 @@ its DVC metrics, a one-line description); its script in ``stages/`` is then just
 :class:`~dexflow.io.layout.Layout`, calls the runner (which maps over the sequences with
 :class:`dexflow.resume.StageOutput`: resume, progress bar, one failed sequence never stops the
 rest), writes ``reports/metrics/<tag>.json`` (deterministic) and ``reports/timing/<tag>.json``
-(wall clock), logs one line and every dropped sequence with its reason, and returns the exit
-code:
+(wall clock, and where the stage ran: commit, machine, data; :mod:`dexflow.provenance`), logs
+one line and every dropped sequence with its reason, and returns the exit code:
 
 - 0: the stage completed and at least one sequence went through (the others were dropped for
   bad input, each listed in ``summary.json`` under ``dropped``);
@@ -36,6 +36,7 @@ import contextlib
 import ctypes
 import fcntl
 import hashlib
+import json
 import logging
 import os
 import select
@@ -47,6 +48,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from dexflow import provenance
 from dexflow.config import load_params
 from dexflow.errors import DexflowError, IncompleteStageError
 from dexflow.io.atomic import save_json
@@ -84,8 +86,8 @@ class StageSpec:
 
 
 def run_stage(spec: StageSpec, params: PipelineParams, layout: Layout, args=()) -> dict:
-    """Run a stage and write its metrics and timing files; returns the summary (timing
-    included)."""
+    """Run a stage and write its metrics and timing files (the timing file records where it
+    ran, every run); returns the summary (timing included)."""
     summary = spec.run(params, layout, *args)
     tag = spec.tag(tuple(args))
     keys = spec.metric_keys
@@ -93,10 +95,12 @@ def run_stage(spec: StageSpec, params: PipelineParams, layout: Layout, args=()) 
         keys = [k for k in summary if k not in _PER_ITEM_KEYS]
     elif keys:
         keys = [*keys, *(k for k in _DROPPED_COUNTS if k not in keys)]
+    digest = None
     if keys:
         save_json(layout.stage_metrics(tag), {k: summary[k] for k in keys if k in summary})
-    if summary.get("timing"):
-        save_json(layout.timing(tag), summary["timing"])
+        written = json.loads(layout.stage_metrics(tag).read_text(encoding="utf-8"))
+        digest = provenance.metrics_digest(written)
+    _record_timing(layout.timing(tag), summary, params, digest)
     label = "@".join([spec.name, *args])
     log.info("%s: %s", label, spec.describe(summary))
     own = {n: e for n, e in _sequence_entries(summary).items() if e.get("status") != "ok"}
@@ -113,6 +117,24 @@ def run_stage(spec: StageSpec, params: PipelineParams, layout: Layout, args=()) 
             label, len(dropped) - len(own), summary.get("num_input_sequences", 0),
         )  # fmt: skip
     return summary
+
+
+def _record_timing(path: Path, summary: dict, params: PipelineParams, digest: str | None) -> None:
+    """Write the stage's ``reports/timing`` record: its speeds and where it ran (commit,
+    machine, data; :func:`dexflow.provenance.stage_record`)."""
+    try:
+        previous = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        previous = None
+    previous = previous if isinstance(previous, dict) else None
+    data = {
+        "name": params.data.name,
+        "root": params.data.root,
+        "sequences": summary.get("num_input_sequences", summary.get("num_sequences")),
+        "frames": summary.get("num_frames"),
+    }
+    timing = summary.get("timing") or {}
+    save_json(path, provenance.stage_record(previous, timing, data, digest))
 
 
 # Per-item entries of a summary (summary.json holds them; the DVC metrics do not), and the

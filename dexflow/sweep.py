@@ -10,13 +10,17 @@ reused instead of run when
   (and in ``dvc.lock``, where the project has one: what its outputs were made with),
 - its command, deps and outs interpolate to the same strings with the job's params (so a new
   ``data.root`` re-runs ``scale_align``),
-- every stage upstream of it (whose outputs it depends on) was reused, and
-- the project has all of its outputs.
+- every stage upstream of it (whose outputs it depends on) was reused,
+- the project has all of its outputs, and
+- (``dexflow-sweep`` and the ablation suite: :func:`run_job`'s ``machine``) this machine made
+  them, as the project's ``reports/timing/<stage>.json`` records (:mod:`dexflow.provenance`):
+  outputs made on another machine, or without a record (restored from git or the DVC cache),
+  are made again, so that the jobs compared with each other come from one machine.
 
 A reused stage's cached outputs are symlinked into the job (``job/data/x -> project/data/x``);
 its ``cache: false`` outputs (``reports/...``) are copied, so that each job has its own
-``reports/metrics/*.json``. Reuse trusts the project's outputs: run ``dvc repro`` (or check
-``dvc status``) in the project first.
+``reports/metrics/*.json``, and so is its ``reports/timing`` record (where it ran). Reuse trusts
+the project's outputs: run ``dvc repro`` (or check ``dvc status``) in the project first.
 
 Each job directory ends up holding ``.hydra/`` (config, overrides), ``params.yaml``,
 ``reports/metrics/*.json``, the job's log and ``sweep_status.json``::
@@ -49,6 +53,7 @@ from typing import Any
 from dvc.utils.serialize import load_yaml  # YAML 1.2 as DVC reads it: `1e-05` is a float
 from omegaconf import DictConfig, OmegaConf
 
+from dexflow import provenance
 from dexflow.config import load_params, project_root
 from dexflow.errors import ConfigError
 
@@ -56,6 +61,7 @@ __all__ = ["Stage", "load_stages", "main", "run_job", "upstream_stages"]
 log = logging.getLogger(__name__)
 
 STATUS_FILE = "sweep_status.json"
+METRICS_DIR, TIMING_DIR = "reports/metrics", "reports/timing"  # as dexflow.io.layout has them
 UNFINISHED = "did not finish (interrupted?)"  # the status a job holds while a stage runs
 APP_CONFIG = "dexflow_sweep"
 # Symlinked into every job so that stage commands (`python stages/x.py`) and
@@ -100,6 +106,16 @@ class Stage:
     @property
     def outputs(self) -> tuple[str, ...]:
         return self.outs + self.copies
+
+    @property
+    def tag(self) -> str:
+        """The name of its ``reports/metrics`` and ``reports/timing`` files: its metrics file's
+        (``demo@demo`` writes ``demo.json``), else ``name@item`` -> ``name_item``."""
+        for path in self.copies:
+            rel = Path(path)
+            if rel.parent == Path(METRICS_DIR) and rel.suffix == ".json":
+                return rel.stem
+        return self.name.replace("@", "_")
 
 
 @dataclass
@@ -329,6 +345,7 @@ def _why_not_reused(
     locked: Mapping[str, Any] | None,
     upstream_ran: list[str],
     root: Path,
+    machine: str | None = None,
 ) -> str | None:
     """Why ``stage`` must run in the job, or None if the project's outputs can be reused.
 
@@ -336,6 +353,7 @@ def _why_not_reused(
         locked: The stage's params as ``dvc.lock`` records them (dotted keys as in dvc.yaml),
             or None where the project has no lock entry for the stage.
         upstream_ran: The stages upstream of this one that ran in the job.
+        machine: Reuse only outputs this machine id made (None: wherever made).
     """
     if upstream_ran:
         return f"upstream {', '.join(upstream_ran)} ran"
@@ -355,7 +373,29 @@ def _why_not_reused(
     missing = [p for p in stage.outputs if not (root / p).exists()]
     if missing:
         return f"the project has no {', '.join(missing)}"
+    if machine is not None:
+        made = _made_by(stage, root)
+        if made is None:
+            return (
+                f"no record of the machine that made the project's outputs "
+                f"({TIMING_DIR}/{stage.tag}.json)"
+            )
+        if made.get("machine_id") != machine:
+            return f"the project's outputs were made on machine {made.get('machine_id')}"
     return None
+
+
+def _made_by(stage: Stage, root: Path) -> dict[str, Any] | None:
+    """Who made the project's outputs of ``stage`` (:func:`dexflow.provenance.made_by`)."""
+    record = provenance.read_records(root / TIMING_DIR).get(stage.tag)
+    metrics_file = root / METRICS_DIR / f"{stage.tag}.json"
+    metrics = None
+    if f"{METRICS_DIR}/{stage.tag}.json" in stage.copies:
+        try:
+            metrics = json.loads(metrics_file.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+    return provenance.made_by(metrics, record)
 
 
 def _remove(path: Path) -> None:
@@ -366,6 +406,8 @@ def _remove(path: Path) -> None:
 
 
 def _reuse(stage: Stage, root: Path, job_dir: Path) -> None:
+    """Link (cached) or copy (``cache: false``) the project's outputs of ``stage`` into the
+    job, with its ``reports/timing`` record, which says where they were made."""
     for rel in stage.outputs:
         src, dst = root / rel, job_dir / rel
         _remove(dst)
@@ -376,6 +418,11 @@ def _reuse(stage: Stage, root: Path, job_dir: Path) -> None:
             shutil.copytree(src, dst, symlinks=True)
         else:
             shutil.copy2(src, dst)
+    record = Path(TIMING_DIR) / f"{stage.tag}.json"
+    _remove(job_dir / record)
+    if (root / record).is_file():
+        (job_dir / record).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(root / record, job_dir / record)
 
 
 def _link_inputs(stage: Stage, stages: list[Stage], root: Path, job_dir: Path) -> None:
@@ -443,13 +490,17 @@ def _load_yaml(path: Path) -> Any:
     return load_yaml(path) if path.is_file() else None
 
 
-def run_job(cfg: DictConfig, root: str | Path, job_dir: str | Path) -> dict:
+def run_job(
+    cfg: DictConfig, root: str | Path, job_dir: str | Path, machine: str | None = None
+) -> dict:
     """Run the pipeline for one composed config in ``job_dir``, reusing the project's outputs.
 
     Args:
         cfg: The composed config (no ``hydra`` node), as the Hydra task function receives it.
         root: The project: ``conf/``, ``stages/``, ``dvc.yaml``, ``params.yaml``, ``data/``.
         job_dir: Where to write (Hydra's ``hydra.runtime.output_dir``); not the project.
+        machine: Reuse only the project's outputs that this machine id made
+            (:func:`dexflow.provenance.machine_id`); None: wherever they were made.
 
     Returns:
         The status written to ``job_dir/sweep_status.json``. Never raises for a failing stage
@@ -494,6 +545,7 @@ def run_job(cfg: DictConfig, root: str | Path, job_dir: str | Path) -> dict:
                 locked,
                 [u for u in upstream[stage.name] if u in status.ran],
                 root,
+                machine,
             )
             if reason is None:
                 _reuse(stage, root, job_dir)
@@ -558,7 +610,7 @@ def main() -> None:
     def sweep_job(cfg: DictConfig) -> dict:
         from hydra.core.hydra_config import HydraConfig
 
-        return run_job(cfg, root, HydraConfig.get().runtime.output_dir)
+        return run_job(cfg, root, HydraConfig.get().runtime.output_dir, provenance.machine_id())
 
     app = hydra.main(config_path=str(root / "conf"), config_name=APP_CONFIG, version_base="1.3")
     app(sweep_job)()

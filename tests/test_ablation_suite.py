@@ -11,17 +11,40 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dexflow import ablation
+from dexflow import ablation, provenance
 from dexflow.ablation import DEFAULT, compare, load_result, suite_experiments, write_suite_report
 from dexflow.io.layout import Layout
+
+OTHER = "0123456789ab"  # the machine id of a machine that is not this one
 
 COLUMNS = ["sequence", "object", "hand", "method", "frames", "keypoint_error_mm",
            "fingertip_error_mm", "velocity_kl", "rms_acc", "pd_mm", "pd_max_mm", "cd_mm",
            "spd_mm", "ssr"]  # fmt: skip
 
 
-def _job(root: Path, name: str, values: dict[str, dict[str, list[float]]], pooled=None) -> Path:
-    """A finished experiment directory: ``values[method][metric]`` per sequence."""
+def _record(job: Path, machine: str | None = None) -> None:
+    """The ``reports/timing`` record the metrics stage leaves for the ``metrics.json`` the job
+    holds: made on this machine, or on ``machine`` (as another machine's run leaves it)."""
+    layout = Layout(root=job)
+    metrics = json.loads(layout.stage_metrics("metrics").read_text())
+    record = provenance.stage_record(None, {}, {}, provenance.metrics_digest(metrics))
+    if machine is not None:
+        record["provenance"]["machine_id"] = machine
+        for entry in record["made"].values():
+            entry["machine_id"] = machine
+    layout.timing("metrics").parent.mkdir(parents=True, exist_ok=True)
+    layout.timing("metrics").write_text(json.dumps(record))
+
+
+def _job(
+    root: Path,
+    name: str,
+    values: dict[str, dict[str, list[float]]],
+    pooled=None,
+    machine: str | None = None,
+) -> Path:
+    """A finished experiment directory: ``values[method][metric]`` per sequence, made on this
+    machine (or on ``machine``)."""
     job = root / name
     layout = Layout(root=job)
     layout.metrics_table.parent.mkdir(parents=True)
@@ -39,6 +62,7 @@ def _job(root: Path, name: str, values: dict[str, dict[str, list[float]]], poole
         writer.writerows(rows)
     (layout.reports / "metrics").mkdir(parents=True)
     (layout.reports / "metrics" / "metrics.json").write_text(json.dumps(pooled or {}))
+    _record(job, machine)
     (job / "sweep_status.json").write_text(json.dumps({"status": "ok"}))
     return job
 
@@ -153,23 +177,34 @@ def test_a_report_without_a_finished_default_says_so(tmp_path):
     assert "| `no_temporal` | queued |" in text
 
 
+def _fake_run_job(ran: list[str], failing: tuple[str, ...] = ()):
+    """A stand-in for dexflow.sweep.run_job that records its calls and leaves an experiment
+    made on this machine, finished but for those ``failing`` (the pipeline itself is tested in
+    test_sweep.py)."""
+
+    def run_job(cfg, root, job_dir, machine=None):
+        job_dir = Path(job_dir)
+        assert machine == provenance.machine_id()  # it reuses only what this machine made
+        ran.append(job_dir.name)
+        status = "failed" if job_dir.name in failing else "ok"
+        (job_dir / "params.yaml").write_text((job_dir / "params.composed.yaml").read_text())
+        layout = Layout(root=job_dir)
+        layout.metrics_table.parent.mkdir(parents=True, exist_ok=True)
+        layout.metrics_table.write_text(",".join(COLUMNS) + "\n")
+        layout.stage_metrics_dir.mkdir(parents=True, exist_ok=True)
+        layout.stage_metrics("metrics").write_text("{}")
+        _record(job_dir)
+        (job_dir / "sweep_status.json").write_text(json.dumps({"status": status}))
+        return {"status": status}
+
+    return run_job
+
+
 def test_run_suite_reuses_finished_experiments_and_reruns_changed_or_failed_ones(
     tmp_path, monkeypatch
 ):
     ran: list[str] = []
-
-    def fake_run_job(cfg, root, job_dir):  # records the call; the pipeline itself is tested
-        job_dir = Path(job_dir)  # in test_sweep.py
-        ran.append(job_dir.name)
-        (job_dir / "params.yaml").write_text((job_dir / "params.composed.yaml").read_text())
-        status = "failed" if job_dir.name == "allegro" else "ok"
-        table = Layout(root=job_dir).metrics_table
-        table.parent.mkdir(parents=True, exist_ok=True)
-        table.write_text(",".join(COLUMNS) + "\n")
-        (job_dir / "sweep_status.json").write_text(json.dumps({"status": status}))
-        return {"status": status}
-
-    monkeypatch.setattr("dexflow.sweep.run_job", fake_run_job)
+    monkeypatch.setattr("dexflow.sweep.run_job", _fake_run_job(ran, failing=("allegro",)))
     root = Path(__file__).resolve().parents[1]
     names = suite_experiments("paper")
     ablation.run_suite("paper", root, tmp_path, ["seed=3"])
@@ -190,10 +225,75 @@ def test_run_suite_reuses_finished_experiments_and_reruns_changed_or_failed_ones
     assert ran == [] and results["allegro"].status == "failed"
 
 
+def test_run_suite_reruns_an_experiment_finished_on_another_machine(tmp_path, monkeypatch):
+    ran: list[str] = []
+    monkeypatch.setattr("dexflow.sweep.run_job", _fake_run_job(ran))
+    question = ablation.Question("q", "Q?", ("no_temporal",), ("refine",), ("pd_mm",))
+    monkeypatch.setitem(ablation.SUITES, "tiny", (question,))
+    root = Path(__file__).resolve().parents[1]
+    ablation.run_suite("tiny", root, tmp_path)
+    assert ran == [DEFAULT, "no_temporal"]
+    ran.clear()
+    ablation.run_suite("tiny", root, tmp_path)
+    assert ran == []  # finished here before: reused
+    _record(tmp_path / DEFAULT, machine=OTHER)  # as if the default had been made elsewhere
+    results = ablation.run_suite("tiny", root, tmp_path)
+    assert ran == [DEFAULT]  # made again here; the experiment made here is kept
+    assert results[DEFAULT].machine == results["no_temporal"].machine == provenance.machine_id()
+
+
+def _two_runs(tmp_path: Path, default_machine: str, experiment_machine: str) -> str:
+    """The paper suite's report of a default and `no_temporal`, each made on the machine named
+    (``here``: this one; ``none``: no record of where)."""
+    runs = tmp_path / "multirun"
+    base = {m: {"pd_mm": [1.0, 2.0, 3.0, 4.0]} for m in ("refine", "retarget")}
+    moved = {m: {"pd_mm": [1.5, 2.4, 3.6, 4.5]} for m in ("refine", "retarget")}
+    for name, values, machine in ((DEFAULT, base, default_machine),
+                                  ("no_temporal", moved, experiment_machine)):  # fmt: skip
+        job = _job(runs, name, values, machine=None if machine in ("here", "none") else machine)
+        if machine == "none":
+            Layout(root=job).timing("metrics").unlink()
+    results = {n: load_result(runs / n) for n in suite_experiments("paper")}
+    out = write_suite_report("paper", results, tmp_path / "ablation.md", "dexflow x", "the demo")
+    return out.read_text()
+
+
+def test_the_suite_report_compares_only_runs_of_the_same_machine(tmp_path):
+    here = provenance.machine_id()
+    text = _two_runs(tmp_path / "same", "here", "here")
+    assert (
+        "Same machine: the default and every experiment compared to it ran, every stage, on "
+        f"machine {here} (this machine)"
+    ) in text
+    assert "- data: the demo" in text and f"- machine: {here} (" in text
+    temporal = text.split("## What do the temporal terms buy?")[1].split("\n## ")[0]
+    assert "| `no_temporal` |" in temporal
+    assert f"| `no_temporal` | complete | 4 |  | {here} |" in text
+
+    # the experiment made on another machine: not compared, and the report says why
+    text = _two_runs(tmp_path / "other", "here", OTHER)
+    temporal = text.split("## What do the temporal terms buy?")[1].split("\n## ")[0]
+    assert "| `no_temporal` |" not in temporal
+    assert "`no_temporal` (made on another machine, or not recorded where)" in temporal
+    assert (
+        f"| `no_temporal` | complete | 4 | not compared: made on machine {OTHER}, the default "
+        f"on {here}; rerun it here | {OTHER} |"
+    ) in text
+    table = list(csv.DictReader((tmp_path / "other" / "ablation.csv").open()))
+    assert table == []  # no comparison recorded either
+
+    # the default (a committed baseline, say) without a record of its machine: no numbers
+    text = _two_runs(tmp_path / "unknown", "none", "here")
+    assert "**No comparison: the default's machine is not recorded**" in text
+    assert text.count("No numbers: the default's machine is not recorded") == len(
+        ablation.SUITES["paper"]
+    )
+
+
 def test_an_experiment_whose_config_is_rejected_fails_alone(tmp_path, monkeypatch):
     ran: list[str] = []
 
-    def fake_run_job(cfg, root, job_dir):
+    def fake_run_job(cfg, root, job_dir, machine=None):
         ran.append(Path(job_dir).name)
         (Path(job_dir) / "sweep_status.json").write_text(json.dumps({"status": "ok"}))
         return {"status": "ok"}
