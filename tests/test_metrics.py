@@ -145,6 +145,21 @@ def test_identical_trajectories_give_zero_error_chamfer_and_kl(allegro):
     )  # fmt: skip
     assert moved["fingertip_error_mm"] == pytest.approx(5.0, abs=1e-6)
     assert moved["keypoint_error_mm"] == pytest.approx(5.0 * len(tips) / len(tips_only[0]))
+    # human tips outside the object: the surface-corrected error is the raw one
+    assert moved["fingertip_error_surface_mm"] == pytest.approx(5.0, abs=1e-6)
+    # a wall 3 mm into the hand: the human tips inside it are moved out to its face, so the
+    # robot (on the human tips) is off the corrected ones by their depth
+    sdf, pose = _wall(allegro, q[0], 0.003)
+    inside, _ = trajectory_metrics(
+        allegro, q[:1], human[:1], np.ones(1, bool), pose[None], sdf, np.zeros((1, 4), bool),
+        30.0, MetricsParams(),
+    )  # fmt: skip
+    with torch.no_grad():
+        face = allegro.surface(torch.as_tensor(q[:1]))[0].numpy()[0][:, 0].max() - 0.003
+    tips_x = human[0, tips, 0]
+    expected = np.clip(tips_x - face, 0, None).mean() * 1000
+    assert inside["fingertip_error_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert inside["fingertip_error_surface_mm"] == pytest.approx(expected, abs=0.05)
 
 
 def test_rms_acceleration_of_a_known_parabola(allegro):
@@ -197,11 +212,13 @@ def _metrics_dir(root, methods=("baseline", "retarget", "refine")):
     metrics.mkdir(parents=True)
     aggregates = {"num_sequences": 2, "num_failed": 0}
     for i, m in enumerate(("baseline", "retarget", "refine")):
-        aggregates |= {f"{m}.ssr": 10.0 * i, f"{m}.pd_mm": 3.0 - i, f"{m}.rms_acc": 1.5}
+        aggregates |= {f"{m}.ssr": 10.0 * i, f"{m}.ssr_paper": 15.0 * i, f"{m}.pd_mm": 3.0 - i,
+                       f"{m}.rms_acc": 1.5}  # fmt: skip
     (metrics / "metrics.json").write_text(json.dumps(aggregates))
     for i, m in enumerate(methods):
-        sim = {"ssr": 10.0 * i, "ssr_raw": 40.0 + i, "ssr_bench": 0.0, "ssr_bench_raw": 5.0,
-               "frames_evaluated": 100 + i, "penetration_mean_mm": 2.5, "over_tolerance": 0.25,
+        sim = {"ssr": 10.0 * i, "ssr_raw": 40.0 + i, "ssr_paper": 15.0 * i, "ssr_bench": 0.0,
+               "ssr_bench_raw": 5.0, "criteria_agree_hold": 3, "criteria_agree_drop": 87 + i,
+               "criteria_disagree": 10, "frames_evaluated": 100 + i, "penetration_mean_mm": 2.5, "over_tolerance": 0.25,
                "parts_penetration_mean_mm": 4.5, "parts_over_tolerance": 0.75,
                "lost_closing": 0.5 if m == "refine" else None, "imbalance_mean": 0.625,
                "contact_imbalance_mean": 0.875}  # fmt: skip
@@ -232,15 +249,18 @@ def test_summary_tables_simulation_and_figures(tmp_path):
     text = out.read_text()
     assert "Hand: **shadow**. Sequences: 2 (0 failed)" in text
     grasp = _section(text, "Grasp quality")
-    assert "| DexFlow + refinement | 20.00 |" in grasp and "| *paper: DexFlow* | 40.32 |" in grasp
+    # the paper's SSR beside the SSR by its protocol, not beside the headline
+    assert "| DexFlow + refinement | 20.00 | 30.00 |" in grasp
+    assert "| *paper: DexFlow* |  | 40.32 |" in grasp
+    assert "0.41" not in grasp.split("Paper rows")[0]  # FVR: the paper defines none
     sim = _section(text, "Simulation").splitlines()
     refine = next(r for r in sim if r.startswith("| DexFlow + refinement"))
-    assert refine.split("|")[1:14] == [" DexFlow + refinement ", " 10.00 ", " 41.00 ", " 0.00 ",
-                                       " 5.00 ", " 101 ", " 2.50 ", " 25 ", " 4.50 ", " 75 ",
-                                       " 50 ", " 0.62 ", " 0.88 "]  # fmt: skip
+    assert refine.split("|")[1:13] == [" DexFlow + refinement ", " 10.00 ", " 15.00 ", " 0.00 ",
+                                       " 90 ", " 101 ", " 2.50 ", " 25 ", " 4.50 ", " 50 ",
+                                       " 0.62 ", " 0.88 "]  # fmt: skip
     baseline = next(r for r in sim if r.startswith("| position baseline"))
-    assert baseline.split("|")[11:13] == [" — ", " 0.62 "]  # None: an engine that holds it
-    assert next(r for r in sim if r.startswith("| DexFlow retargeting")).count("—") == 12
+    assert baseline.split("|")[10:12] == [" — ", " 0.62 "]  # None: an engine that holds it
+    assert next(r for r in sim if r.startswith("| DexFlow retargeting")).count("—") == 11
     objects = _section(text, "Per object")
     assert objects.index("003_cracker_box") < objects.index("025_mug")
     for name in ("summary_methods.png", "summary_objects_pd.png", "summary_timeline.png"):
@@ -419,13 +439,13 @@ def test_summary_shows_each_engine_flips_and_their_agreement(tmp_path):
     flipped frames, and the per-frame agreement; one engine without perturbations: no section."""
     metrics, table, plots = _metrics_dir(tmp_path, methods=("baseline", "refine"))
     sim = json.loads((metrics / "simulate_refine.json").read_text())
-    sim |= {"engines": "mujoco,pybullet", "perturbations": 2, "ssr_mujoco": 12.5,
-            "ssr_bench_mujoco": 12.5, "flipped_mujoco": 0.05, "ssr_pybullet": 25.0,
+    sim |= {"engines": "mujoco,pybullet", "perturbations": 2, "ssr_paper_mujoco": 12.5,
+            "ssr_bench_mujoco": 12.5, "flipped_mujoco": 0.05, "ssr_paper_pybullet": 25.0,
             "ssr_bench_pybullet": 20.0, "flipped_pybullet": 0.1, "agree_hold": 3,
             "agree_drop": 90, "disagree": 7}  # fmt: skip
     (metrics / "simulate_refine.json").write_text(json.dumps(sim))
     text = write_summary(metrics, table, plots, tmp_path / "s.md", tmp_path / "f").read_text()
-    assert "## Simulation (mujoco and pybullet (SSR: the first)" in text
+    assert "## Simulation (mujoco and pybullet (SSR: held in both)" in text
     rows = _section(text, "Simulation").splitlines()
     assert "| DexFlow + refinement | mujoco | 12.50 | 12.50 | 5.0 |" in rows
     assert "| DexFlow + refinement | pybullet | 25.00 | 20.00 | 10.0 |" in rows
@@ -434,4 +454,4 @@ def test_summary_shows_each_engine_flips_and_their_agreement(tmp_path):
 
     metrics, table, plots = _metrics_dir(tmp_path / "one", methods=("refine",))
     text = write_summary(metrics, table, plots, tmp_path / "o.md", tmp_path / "g").read_text()
-    assert "Engines and robustness" not in text and "## Simulation (pybullet," in text
+    assert "Engines and robustness" not in text and "## Simulation (pybullet:" in text

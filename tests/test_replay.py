@@ -230,12 +230,15 @@ def test_report_section_tabulates_each_method_and_plots_the_error(tmp_path):
         "b": {"status": "ok", "replayed": False},
     }
     save_json(root / "summary.json", {"sequences": sequences})
-    refine = {"num_replayed": 1, "success_rate": 100.0, "spider_success_rate": 100.0,
-              "carried_rate": 0.0, "position_error_mean_m": 0.031, "lost_rate": 0.0}  # fmt: skip
+    refine = {"num_replayed": 1, "num_scored": 1, "num_not_scored": 2,
+              "num_not_scored_no_support": 1, "num_not_scored_free_fall": 1,
+              "success_rate": 100.0, "spider_success_rate": 100.0, "carried_rate": 0.0,
+              "position_error_mean_m": 0.031, "lost_rate": 0.0}  # fmt: skip
     stage = {"replay_refine": refine, "replay_baseline": {}}
     lines = _replay_section(stage, {"refine": root}, tmp_path / "figures", tmp_path / "f")
     rows_md = [line for line in lines if line.startswith("| DexFlow")]
-    assert len(rows_md) == 1 and "| 1 | 100.0 | 100.0 | 0.0 | 3.1 |" in rows_md[0], rows_md
+    assert len(rows_md) == 1, rows_md
+    assert "| 1 | 2 (1 no support, 1 free fall) | 100.0 | 100.0 | 0.0 | 3.1 |" in rows_md[0]
     assert (tmp_path / "figures" / "summary_replay.png").stat().st_size > 0
     assert _replay_section({}, {}, tmp_path / "figures", tmp_path / "f") == []
 

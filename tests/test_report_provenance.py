@@ -136,7 +136,7 @@ def test_each_rate_and_mean_has_its_interval_over_sequences(tmp_path, summary_in
     (metrics / "simulate_refine.json").write_text(json.dumps(sim | {"num_ok": 8, "ssr_raw": 37.5}))
     text = _write(tmp_path, summary_inputs)
 
-    baseline, _, refine, n, kind = _cells(text, "SSR % ↑")
+    baseline, _, refine, n, kind = _cells(text, "SSR every test % ↑")
     assert (n, kind) == ("8", "Wilson")
     wilson = rate_interval(2, 8)
     assert _parse(refine) == pytest.approx((25.0, wilson.low, wilson.high), abs=0.05)
@@ -149,7 +149,7 @@ def test_each_rate_and_mean_has_its_interval_over_sequences(tmp_path, summary_in
     assert _cells(text, "replay success %")[2] == "25.0 [12.0, 44.9]"
     assert _cells(text, "replay success %")[0] == "—"  # no replay of the baseline
     # the simulate stage's rates that sequences.csv lacks, over the sequences it counted
-    without_rule = _cells(text, "SSR without the rule %")
+    without_rule = _cells(text, "SSR every test without the rule %")
     assert without_rule[2] == rate_interval(3, 8).text(1) and without_rule[0] == "—"
     assert "velocity KL" not in _section(text, "Spread over sequences").split("|---")[1]
 
