@@ -47,7 +47,7 @@ def test_table_has_one_row_per_hand_and_method_and_marks_missing_values():
     ]
     assert len(rows) == 6
     refine = next(r for r in rows if r.startswith("| shadow | DexFlow + refine"))
-    assert refine.split("|")[3].strip() == "7.2" and refine.split("|")[6].strip() == "3.0"
+    assert refine.split("|")[3].strip() == "7.2" and refine.split("|")[7].strip() == "3.0"
     baseline = next(r for r in rows if r.startswith("| shadow | position baseline"))
     assert baseline.split("|")[8].strip() == "—"
     assert (
@@ -70,10 +70,11 @@ def test_table_names_the_subset_flag_it_was_made_with():
 
 
 def test_table_shows_each_engine_and_their_agreement_and_the_overrides():
-    sim = {"engines": "mujoco,pybullet", "perturbations": 2, "ssr_mujoco": 25.0,
-           "ssr_bench_mujoco": 25.0, "flipped_mujoco": 0.02, "ssr_pybullet": 50.0,
+    sim = {"engines": "mujoco,pybullet", "perturbations": 2, "ssr_paper_mujoco": 25.0,
+           "ssr_bench_mujoco": 25.0, "flipped_mujoco": 0.02, "ssr_paper_pybullet": 50.0,
            "ssr_bench_pybullet": 37.5, "flipped_pybullet": 0.05, "agree_hold": 4,
-           "agree_drop": 30, "disagree": 6}  # fmt: skip
+           "agree_drop": 30, "disagree": 6, "criteria_agree_hold": 5, "criteria_agree_drop": 33,
+           "criteria_disagree": 2}  # fmt: skip
     result = {
         "metrics": {},
         "simulate": {"refine": sim},
@@ -87,6 +88,7 @@ def test_table_shows_each_engine_and_their_agreement_and_the_overrides():
     assert "| shadow | refine | mujoco | 25.0 | 25.0 | 2.0 |" in text
     assert "| shadow | refine | pybullet | 50.0 | 37.5 | 5.0 |" in text
     assert "| shadow | refine | 40 | 4 | 30 | 6 |" in text
+    assert "| shadow | refine | 40 | 5 | 33 | 2 |" in text  # the two tests of mujoco
 
 
 def test_table_says_where_refinement_moved_the_fingertips():
