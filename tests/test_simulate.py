@@ -265,10 +265,11 @@ def test_hand_with_tiny_inertias_holds_its_pose_without_an_object(tmp_path, name
     assert np.abs(angles - q[6:]).max() < 0.05
 
 
-def test_penetration_rule_uses_the_mesh_not_the_bulging_convex_parts(scene, box_sdf, tmp_path):
+def test_penetration_rule_holds_on_the_mesh_and_on_the_simulated_parts(scene, box_sdf, tmp_path):
     """A flush grasp on the box, simulated with convex parts 3 mm larger than the mesh (as a
-    decomposition bulges beyond a scan): the parts overlap the hand by 3 mm, the mesh by none,
-    and the frame is counted."""
+    decomposition bulges beyond a scan): the mesh overlaps the hand by none, the parts by 3 mm,
+    so in the physics the fingers start wedged 3 mm inside the object and the frame cannot
+    count, whatever it holds; with parts as large as the mesh it counts."""
     hand, world, pose, _ = scene
     q = _closed(hand, world, pose)
     write_convex_obj(tmp_path / "bulging.obj", [trimesh.creation.box(np.array(BOX) + 0.006)])
@@ -277,8 +278,13 @@ def test_penetration_rule_uses_the_mesh_not_the_bulging_convex_parts(scene, box_
     arrays, result = simulate_sequence(bulging, q[None], pose[None], 0, box_sdf)
     assert arrays["pybullet.parts_penetration_m"][0] > 0.0025
     assert arrays["penetration_m"][0] < 1e-3
-    assert result["over_tolerance"] == 0.0 and result["parts_over_tolerance"] == 1.0
-    assert result["success_contact"] == result["success_contact_raw"]
+    assert result["over_tolerance"] == 0.0 and result["over_tolerance_parts"] == 1
+    assert result["success_contact_raw"] and not result["success_contact"]
+    exact = GraspWorld(hand, hand_urdf(hand), SINGLE)
+    write_convex_obj(tmp_path / "exact.obj", [trimesh.creation.box(BOX)])
+    exact.set_object(tmp_path / "exact.obj")
+    _, counted = simulate_sequence(exact, q[None], pose[None], 0, box_sdf)
+    assert counted["over_tolerance_parts"] == 0 and counted["success_contact"]
 
 
 def test_both_engines_test_the_same_frames_and_their_agreement_is_counted(scene, box_sdf):
