@@ -90,7 +90,7 @@ import torch
 from dexflow.errors import ArtifactError
 from dexflow.geometry import rotate_vectors, transform_points
 from dexflow.hands.files import staged_spec
-from dexflow.hands.robot import RobotHand, cached_hand
+from dexflow.hands.robot import RobotHand, cached_hand, measurement_hand
 from dexflow.io.artifacts import (
     ObjectAssets,
     Trajectory,
@@ -101,13 +101,11 @@ from dexflow.io.artifacts import (
 from dexflow.io.layout import Layout
 from dexflow.io.sequence import load_sequence
 from dexflow.measures import (
-    contact_distance,
-    finger_minimum,
+    capped_contact_distance,
     finite_mean,
     frame_chunks,
-    penetration_depth,
+    hand_object_depths,
     rms_acceleration,
-    surface_distances,
 )
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import PipelineParams, RefineParams
@@ -237,31 +235,35 @@ def hand_object_measures(
     contact: np.ndarray,
     spen_delta_m: float,
 ) -> dict[str, np.ndarray]:
-    """Per-frame measures of what refinement changes (metres).
+    """Per-frame measures of what refinement changes (metres), each the metrics stage's own.
 
-    - ``pd``: penetration depth, :func:`dexflow.measures.penetration_depth` (the metrics
-      stage's ``pd_mm``);
-    - ``cd``: contact distance, :func:`dexflow.measures.contact_distance` (``cd_mm``);
+    - ``pd``: penetration depth on every collision shape
+      (:func:`~dexflow.hands.robot.measurement_hand`, :func:`dexflow.measures.penetration_depth`:
+      the metrics stage's ``pd_mm``);
+    - ``cd``: BODex's contact distance on the grasp frames,
+      :func:`dexflow.measures.capped_contact_distance` (``cd_mm``);
     - ``finger_overlap``: the largest ``δ - d`` (clipped at 0) between surface points of
       different fingers (subsampled): what E_spen penalises, not the link self-penetration of
       the metrics stage's ``spd_mm``.
     """
+    pd, per_finger = hand_object_depths(measurement_hand(hand), q, obj_pose, sdf)
+    cd = capped_contact_distance(per_finger, np.asarray(contact, dtype=bool).any(axis=1))
     masks = list(hand.finger_point_masks.values())
     rng = np.random.default_rng(0)
     picks = [
         rng.choice(np.flatnonzero(m), min(48, m.sum()), replace=False) for m in masks if m.any()
     ]
-    pd, per_finger, overlap = np.zeros(len(q)), np.zeros((len(q), len(masks))), np.zeros(len(q))
+    overlap = np.zeros(len(q))
     for frames in frame_chunks(len(q)):  # memory bounded by a chunk, not the sequence
-        distances, points = surface_distances(hand, q[frames], obj_pose[frames], sdf)
-        pd[frames] = penetration_depth(distances)
-        per_finger[frames] = finger_minimum(distances, masks)
+        with torch.no_grad():
+            points = hand.surface(torch.as_tensor(q[frames], dtype=hand.dtype), normals=False)[0]
+        points = points.cpu().numpy()
         for i in range(len(picks)):
             for j in range(i + 1, len(picks)):
                 d = np.linalg.norm(points[:, picks[i], None] - points[:, None, picks[j]], axis=-1)
                 gap = np.clip(spen_delta_m - d.min(axis=(1, 2)), 0, None)
                 overlap[frames] = np.maximum(overlap[frames], gap)
-    return {"pd": pd, "cd": contact_distance(per_finger, contact), "finger_overlap": overlap}
+    return {"pd": pd, "cd": cd, "finger_overlap": overlap}
 
 
 def refine_trajectory(
