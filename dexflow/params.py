@@ -369,6 +369,7 @@ class RefineParams:
     w_align: float = 1e-5
     w_spen: float = 0.01
     w_joints: float = 1e-4
+    w_tip: float = 300.0
     w_smooth: float = 0.1
     spen_delta_m: float = 0.005
     pen_margin_m: float = 0.001
@@ -377,9 +378,10 @@ class RefineParams:
     learning_rate: float = 0.03
     blend_frames: float = 3.0
     refine_base: bool = False
+    surface_tips: bool = True
     release: bool = True
     release_w_pen: float = 300.0
-    release_w_touch: float = 3000.0
+    release_w_touch: float = 4000.0
     release_w_track: float = 30.0
     release_tip_weight: float = 30.0
     release_w_smooth: float = 1000.0
@@ -388,7 +390,7 @@ class RefineParams:
     release_iterations: int = 60
     release_first_iterations: int = 20
     release_rounds: int = 4
-    release_depth_m: float = 0.004
+    release_depth_m: float = 0.0035
     release_reach_m: float = 0.03
     window_frames: int = 400
     window_overlap: int = 40

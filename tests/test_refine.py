@@ -26,6 +26,7 @@ from dexflow.refine import (
     _second_difference_gram,
     _stacked_bands,
     energy_terms,
+    fingertip_targets,
     grip_trajectory,
     refine_trajectory,
     release_hand,
@@ -140,6 +141,13 @@ def test_energy_gradients_match_finite_differences(allegro):
     joints = hand.fingers["index"]
     spen_rows = torch.arange(0, int(mine.sum()), 7)
 
+    keypoint = next(k for k in hand.fingertip_keypoints if hand.mano_indices[k] == 8)  # index
+    with torch.no_grad():
+        tip_goal = hand.keypoints(torch.as_tensor(q))[:, keypoint] + torch.tensor(
+            [0.003, -0.002, 0.004], dtype=torch.float64
+        )
+    tip_normal = torch.tensor([[1.0, 1.0, 0.0]] * FRAMES, dtype=torch.float64) / np.sqrt(2)
+
     def terms(theta):
         qf = torch.as_tensor(q).clone()
         qf[:, joints] = theta
@@ -153,12 +161,17 @@ def test_energy_gradients_match_finite_differences(allegro):
             fixed_others,
             sdf,
             0.02,
+            tip=(keypoint, tip_goal, tip_normal),
         )
 
     theta = torch.as_tensor(q[:, joints]).clone()
     values = terms(theta)
     assert values["pen"].sum() > 0 and values["dis"].sum() > 0 and values["spen"].sum() > 0
-    for name in ("dis", "pen", "align", "spen"):
+    # the tip term is the squared miss across the normal: (3, -2, 4) mm, 1/√2 mm of it along
+    # (1, 1, 0)/√2, leaves 29 - 0.5 mm²
+    expected = torch.full((FRAMES,), 28.5e-6, dtype=torch.float64)
+    torch.testing.assert_close(values["tip"], expected, rtol=1e-9, atol=0)
+    for name in ("dis", "pen", "align", "spen", "tip"):
         t = theta.clone().requires_grad_(True)
         (grad,) = torch.autograd.grad(terms(t)[name].sum(), t)
         eps = 1e-6
@@ -460,30 +473,35 @@ def test_the_first_release_runs_its_own_iterations_and_the_last_its_rounds(alleg
 
     calls = []
 
-    def fake_release(hand, q, world_to_obj, sdf, contact, params, reference=None, rounds=None):
-        calls.append((params.release_iterations, rounds, reference is None))
+    def fake_release(
+        hand, q, world_to_obj, sdf, contact, params, reference=None, rounds=None, tip_targets=None
+    ):
+        calls.append((params.release_iterations, rounds, reference is None, tip_targets))
         return q
 
     monkeypatch.setattr(refine, "release_hand", fake_release)
     monkeypatch.setattr(refine, "_finger_step", lambda hand, q, *a: (q, None, None))
     params = RefineParams(release_iterations=50, release_first_iterations=7)
     pose = np.repeat(np.eye(4)[None], 4, 0)
-    refine._refine_whole(allegro, np.zeros((4, allegro.dof)), pose, None, None, {}, params)
-    assert calls == [(7, 1, True), (50, None, False)]  # rounds None: release_rounds
+    targets = np.zeros((4, 4, 3))
+    refine._refine_whole(allegro, np.zeros((4, allegro.dof)), pose, None, None, {}, params, targets)
+    # rounds None: release_rounds; both releases track the fingertip targets
+    assert calls == [(7, 1, True, targets), (50, None, False, targets)]
 
 
 def test_windows_cover_every_frame_and_cross_fade_linearly(allegro, monkeypatch):
     """Windows of at most 10 frames overlapping by at least 4 on 23 frames: four of 9 frames,
     evenly spaced ([0, 9), [5, 14), [9, 18), [14, 23)); each gets its own rows of the contact
-    map, counted from its first frame, and the shared frames ramp linearly from one window's
-    result to the next."""
+    map, counted from its first frame, and its frames' fingertip targets; the shared frames ramp
+    linearly from one window's result to the next."""
     from dexflow import refine
 
-    seen = []
+    seen, frames_of_targets = [], []
 
-    def fake_whole(hand, q_init, obj_pose, sdf, contact, cmap, params):
+    def fake_whole(hand, q_init, obj_pose, sdf, contact, cmap, params, tip_targets):
         k = len(seen)
         seen.append((len(q_init), cmap["map_frame"].tolist()))
+        frames_of_targets.append(tip_targets[:, 0, 0].tolist())
         value = np.full_like(q_init, float(k))  # window k returns k everywhere
         return value, np.full(len(q_init), k), np.full(len(q_init), 10.0 * k)
 
@@ -492,12 +510,14 @@ def test_windows_cover_every_frame_and_cross_fade_linearly(allegro, monkeypatch)
     monkeypatch.setattr(type(allegro), "apply_couplings", lambda self, q: q)
     q = np.zeros((23, allegro.dof))
     cmap = {"map_frame": np.array([0, 7, 9, 14, 22]), "map_finger": np.zeros(5, int)}
+    targets = np.broadcast_to(np.arange(23.0)[:, None, None], (23, 4, 3))  # the frame number
     out, e0, e1 = refine_trajectory(
         allegro, q, np.repeat(np.eye(4)[None], 23, 0), None, np.zeros((23, 4), bool), cmap,
-        RefineParams(window_frames=10, window_overlap=4),
+        RefineParams(window_frames=10, window_overlap=4), targets,
     )  # fmt: skip
     assert [n for n, _ in seen] == [9, 9, 9, 9]
     assert [f for _, f in seen] == [[0, 7], [2, 4], [0, 5], [0, 8]]
+    assert frames_of_targets == [list(range(a, a + 9)) for a in (0, 5, 9, 14)]
     expected = np.r_[np.zeros(5), np.arange(1, 5) / 5, 1 + np.arange(1, 6) / 6,
                      2 + np.arange(1, 5) / 5, np.full(5, 3.0)]  # fmt: skip
     assert np.allclose(out[:, 0], expected) and np.allclose(e0, expected)
@@ -610,3 +630,95 @@ def test_refine_reads_where_replay_lost_the_object_and_says_when_it_cannot(tmp_p
         "c": {"replayed": False, "frames": 0},
     }}))  # fmt: skip
     assert _lost_frames(layout) == {"a": 40, "b": -1}
+
+
+def test_fingertip_targets_are_the_human_tips_on_the_surface_where_observed(allegro):
+    """On observed frames the targets are the human fingertips, one 3 mm inside a box moved
+    onto its face; on the others (and with surface_tips off) the retargeted fingertips."""
+    q = allegro.zero(3).numpy()
+    with torch.no_grad():
+        robot = allegro.keypoints(torch.as_tensor(q)).numpy()
+    tips = allegro.fingertip_keypoints
+    human = robot + 0.5  # every keypoint far from the box ...
+    inside = np.array([0.01, 0.02, 0.03])
+    human[:, tips[1]] = inside  # ... but one fingertip, 3 mm inside the box's -x face
+    box = trimesh.creation.box(extents=(0.04, 0.04, 0.04))
+    grid = SignedDistanceGrid.from_mesh(box, spacing=0.002)
+    pose = np.repeat(np.eye(4)[None], 3, axis=0)
+    pose[:, :3, 3] = [inside[0] + 0.017, inside[1], inside[2]]  # the face at x = 7 mm
+    observed = np.array([True, False, True])
+    targets = fingertip_targets(allegro, q, human, observed, pose, grid)
+    assert targets.shape == (3, len(tips), 3)
+    np.testing.assert_allclose(targets[[0, 2], 1], [[0.007, 0.02, 0.03]] * 2, atol=1e-5)
+    np.testing.assert_array_equal(
+        targets[[0, 2]][:, [0, 2, 3]], human[[0, 2]][:, tips][:, [0, 2, 3]]
+    )
+    np.testing.assert_array_equal(targets[1], robot[1, tips])
+    retargeted = fingertip_targets(allegro, q, human, observed, pose, grid, surface_tips=False)
+    np.testing.assert_array_equal(retargeted, robot[:, tips])
+
+
+def _flex_direction(hand, q, joint: str, keypoint: int) -> np.ndarray:
+    """Unit direction in which ``keypoint`` moves when ``joint`` flexes at ``q``."""
+    moved = q.copy()
+    moved[:, hand.joint_names.index(joint)] += 1e-4
+    with torch.no_grad():
+        a, b = (hand.keypoints(torch.as_tensor(x))[0, keypoint].numpy() for x in (q, moved))
+    return (b - a) / np.linalg.norm(b - a)
+
+
+def test_release_tracks_the_fingertip_targets(allegro):
+    """Far from the object the release only tracks: the index fingertip goes to a target 4 mm
+    from where retargeting put it (its last joint flexes), the other keypoints stay; without
+    targets nothing moves."""
+    q, pose, grid = _palm_scene(allegro, 0.0)
+    pose[:, 0, 3] += 0.5  # the object half a metre away
+    contact = np.zeros((len(q), 4), dtype=bool)
+    inv = torch.as_tensor(np.linalg.inv(pose))
+    tips = allegro.fingertip_keypoints
+    index = next(i for i, k in enumerate(tips) if allegro.mano_indices[k] == 8)
+    with torch.no_grad():
+        before = allegro.keypoints(torch.as_tensor(q)).numpy()
+    targets = before[:, tips].copy()
+    targets[:, index] += 0.004 * _flex_direction(allegro, q[:1], "joint_3.0", tips[index])
+    q1 = release_hand(allegro, q, inv, TorchSDF(grid), contact, RefineParams(), tip_targets=targets)
+    with torch.no_grad():
+        after = allegro.keypoints(torch.as_tensor(q1)).numpy()
+    assert np.linalg.norm(after[:, tips[index]] - targets[:, index], axis=-1).max() < 5e-4
+    others = [k for k in range(len(allegro.mano_indices)) if k != tips[index]]
+    assert np.linalg.norm(after[:, others] - before[:, others], axis=-1).max() < 5e-4
+    still = release_hand(allegro, q, inv, TorchSDF(grid), contact, RefineParams())
+    assert np.abs(still - q).max() < 1e-6
+
+
+@pytest.mark.parametrize("gap", [-0.004, 0.008])
+def test_the_finger_step_holds_the_fingertip_across_the_normal(allegro, gap):
+    """Contact-map object points 6 mm along the face from the pad (nearest surface samples
+    found elsewhere) pull the finger sideways along the surface, 5 mm; E_tip holds the tip
+    across the normal, and the pad still reaches the surface along it (from 4 mm inside or
+    8 mm away)."""
+    q, pose, box, grid = _scene(allegro, gap)
+    contact = np.zeros((FRAMES, 4), dtype=bool)
+    contact[:, list(allegro.spec.fingers).index("index")] = True
+    _, dist, local = finger_distances(allegro, q, pose, grid)
+    points, faces = trimesh.sample.sample_surface(box, 4000, seed=0)
+    masks = list(allegro.finger_point_masks.values())
+    cmap = _contact_map(local, dist, contact, masks, cKDTree(points), box.face_normals[faces], 8)
+    tip = allegro.fingertip_keypoints[1]
+    normal = -pose[0, :3, 0]  # the face's outward normal (the pad faces the tip frame's +x)
+    sideways = _flex_direction(allegro, q[:1], "joint_0.0", tip)  # abduction
+    sideways -= (sideways @ normal) * normal
+    sideways /= np.linalg.norm(sideways)
+    cmap["map_object_point"] = cmap["map_object_point"] + 0.006 * (pose[0, :3, :3].T @ sideways)
+    across = {}
+    for w_tip in (0.0, RefineParams().w_tip):
+        params = RefineParams(blend_frames=0.0, iterations=80, release=False, w_tip=w_tip)
+        q1, _, _ = refine_trajectory(allegro, q, pose, TorchSDF(grid), contact, cmap, params)
+        with torch.no_grad():
+            moved = allegro.keypoints(torch.as_tensor(q1)) - allegro.keypoints(torch.as_tensor(q))
+        change = moved[:, tip].numpy()
+        across[w_tip] = np.linalg.norm(change - (change @ normal)[:, None] * normal, axis=-1)
+        distance = _index_distance(allegro, q1, pose, grid)
+        assert np.all(np.abs(distance) < 0.0015), (w_tip, distance)  # on the surface
+    assert across[0.0].min() > 0.004, across
+    assert across[RefineParams().w_tip].max() < 0.001, across

@@ -68,8 +68,10 @@ def surface_corrected_tips(
     """
     tips_world = np.asarray(tips_world, dtype=np.float64)
     obj_pose = np.asarray(obj_pose, dtype=np.float64)
-    if tips_world.ndim != 3 or tips_world.shape[-1] != 3 or obj_pose.shape != (
-        len(tips_world), 4, 4
+    if (
+        tips_world.ndim != 3
+        or tips_world.shape[-1] != 3
+        or obj_pose.shape != (len(tips_world), 4, 4)
     ):
         raise ValueError(
             f"expected tips (T, K, 3) and object poses (T, 4, 4); got {tips_world.shape} "
