@@ -5,16 +5,31 @@ A leaf module: it imports no stage, so every stage module, :mod:`dexflow.config`
 without importing each other. Each attribute is documented in ``conf/<group>/*.yaml``, next to
 its default; :func:`validate` raises :class:`~dexflow.errors.ConfigError` naming the key whose
 value is out of range.
+
+**Every default is written once**, in ``conf/`` (what ``dvc exp run`` and ``dexflow params``
+compose): :func:`conf_defaults` gives each dataclass the values of its group's default file, so
+``RefineParams()`` is ``conf/refine/default.yaml`` whatever the caller. A dataclass writes a
+default itself only for a key its file does not have (``retarget.method``, set per stage
+label; ``run.address``, for Ray only), and a key written in both places, a yaml key with no
+field or a field with no default anywhere stops the import, naming it.
 """
 
 from __future__ import annotations
 
+import copy
+import functools
+import inspect
 import math
-from dataclasses import dataclass, field, fields, is_dataclass
+import re
+from dataclasses import Field, dataclass, field, fields, is_dataclass
+from pathlib import Path
 from typing import Any
+
+import yaml
 
 from dexflow.errors import ConfigError
 from dexflow.hands.spec import HandSpec as HandParams
+from dexflow.hands.spec import check_yaml_file
 
 __all__ = [
     "DATA_GENERATORS",
@@ -76,7 +91,95 @@ def _require_pair(pair: Any, key: str, positive: bool = False) -> None:
     _require(ok, key, f"[lo, hi] with {'0 <' if positive else '0 <='} lo <= hi", list(pair))
 
 
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+_REFERENCE = re.compile(r"\$\{(\w+)\}")
+
+
+@functools.cache
+def _conf_values(conf_dir: Path, relative: str) -> dict[str, Any]:
+    """The keys of one ``conf/`` file, its Hydra ``defaults`` list left out and ``${key}``
+    references to ``config.yaml``'s top level (the master ``seed``) resolved."""
+    path = conf_dir / relative
+    if not path.is_file():
+        raise ImportError(
+            f"{path}: missing; dexflow's defaults live in the project's conf/ (install dexflow "
+            "from its source folder: pip install -e .)"
+        )
+    check_yaml_file(path)  # no alias bomb, as for every yaml dexflow reads
+    values = yaml.safe_load(path.read_text()) or {}
+    values.pop("defaults", None)
+    top = values if relative == "config.yaml" else _conf_values(conf_dir, "config.yaml")
+
+    def resolve(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: resolve(v) for k, v in value.items()}
+        if isinstance(value, list):
+            return [resolve(v) for v in value]
+        whole = _REFERENCE.fullmatch(value) if isinstance(value, str) else None
+        return top[whole.group(1)] if whole else value
+
+    return resolve(values)
+
+
+def _typed(value: Any, annotation: str) -> Any:
+    """``value`` as the field's annotation has it: a float field's ``1`` is ``1.0``, a
+    ``tuple[...]`` field's yaml list a tuple of its element types."""
+    if annotation == "float" and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if annotation.startswith("tuple[") and isinstance(value, list):
+        kinds = [k.strip() for k in annotation[len("tuple[") : -1].split(",")]
+        return tuple(_typed(v, k) for v, k in zip(value, kinds, strict=True))
+    return value
+
+
+def conf_defaults(relative: str, key: str | None = None, conf_dir: Path | None = None):
+    """Class decorator, under ``@dataclass``: the fields' defaults from ``conf/<relative>``
+    (its sub-mapping ``key`` for a nested section), so that each default is written once.
+
+    A field with a mapping there (a nested section) keeps its own ``field(default_factory=...)``
+    of a dataclass decorated the same way; a list gets a fresh copy per instance.
+
+    Raises:
+        TypeError: at import, naming the class and key: a default written both in the file and
+            in the class, a key of the file that is no field, or a field with no default.
+    """
+
+    def apply(cls: type) -> type:
+        where = f"conf/{relative}" + (f" [{key}]" if key else "")
+        values = _conf_values(conf_dir or CONF_DIR, relative)
+        if key:
+            values = values[key]
+        annotations = inspect.get_annotations(cls)
+        unknown = sorted(set(values) - set(annotations))
+        if unknown:
+            raise TypeError(f"{cls.__name__}: {where} has keys that are no field: {unknown}")
+        for name, annotation in annotations.items():
+            own = cls.__dict__.get(name, Field)  # Field: a sentinel for "none"
+            nested = isinstance(own, Field) and callable(own.default_factory)
+            if name not in values:
+                if own is Field:
+                    raise TypeError(f"{cls.__name__}.{name}: no default in {where} or the class")
+                continue
+            value = values[name]
+            if isinstance(value, dict):
+                if not nested:
+                    raise TypeError(f"{cls.__name__}.{name}: {where} has a section here; the "
+                                    "field needs field(default_factory=<its dataclass>)")  # fmt: skip
+                continue
+            if own is not Field:
+                raise TypeError(f"{cls.__name__}.{name}: default written twice, in {where} "
+                                "and in the class; keep the yaml's")  # fmt: skip
+            value = _typed(value, str(annotation))
+            if isinstance(value, list):
+                value = field(default_factory=functools.partial(copy.deepcopy, value))
+            setattr(cls, name, value)
+        return cls
+
+    return apply
+
+
 @dataclass
+@conf_defaults("data/demo.yaml")
 class DataParams:
     """Input sequences (``data``): a directory in the canonical format, or the generated demo.
 
@@ -88,9 +191,9 @@ class DataParams:
             plain ``dvc repro`` on your data has no demo stage to run).
     """
 
-    name: str = "demo"
-    root: str = "data/demo"
-    generated_by: list[str] = field(default_factory=lambda: ["demo"])
+    name: str
+    root: str
+    generated_by: list[str]
 
     def __post_init__(self) -> None:
         _require(bool(self.root), "data.root", "a directory", self.root)
@@ -99,6 +202,7 @@ class DataParams:
 
 
 @dataclass
+@conf_defaults("demo/default.yaml")
 class DemoConfig:
     """Size and realism of the demo dataset (``data.demo`` in params.yaml).
 
@@ -138,36 +242,36 @@ class DemoConfig:
         sdf_spacing_m: Grid spacing of the signed distance used for synthesis.
     """
 
-    seed: int = 0
-    objects: list[str] = field(default_factory=list)
-    sequences_per_object: int = 2
-    fps: float = 30.0
-    min_frames: int = 60
-    max_frames: int = 150
-    release_probability: float = 0.5
-    noise_std_m: float = 0.0015
-    inside_fraction: float = 0.35
-    inside_depth_m: tuple[float, float] = (0.003, 0.010)
-    hover_fraction: float = 0.3
-    hover_gap_m: tuple[float, float] = (0.003, 0.008)
-    hover_wobble_m: float = 0.003
-    dropout_bursts: float = 1.0
-    dropout_length: tuple[int, int] = (1, 4)
-    tracking_loss_probability: float = 0.4
-    tracking_loss_length: tuple[int, int] = (2, 5)
-    tracking_loss_distance_m: tuple[float, float] = (0.2, 0.5)
-    template_start_probability: float = 0.7
-    template_start_length: tuple[int, int] = (3, 25)
-    template_end_probability: float = 0.15
-    template_end_length: tuple[int, int] = (3, 12)
-    template_distance_m: tuple[float, float] = (0.6, 0.8)
-    template_max_fraction: float = 0.45
-    hold_penetration_probability: float = 0.5
-    hold_penetration_m: tuple[float, float] = (0.002, 0.01)
-    hold_penetration_wobble_m: float = 0.002
-    tip_inside_probability: float = 0.8
-    tip_depth_mean_m: float = 0.017
-    tip_depth_max_m: float = 0.03
+    seed: int
+    objects: list[str]
+    sequences_per_object: int
+    fps: float
+    min_frames: int
+    max_frames: int
+    release_probability: float
+    noise_std_m: float
+    inside_fraction: float
+    inside_depth_m: tuple[float, float]
+    hover_fraction: float
+    hover_gap_m: tuple[float, float]
+    hover_wobble_m: float
+    dropout_bursts: float
+    dropout_length: tuple[int, int]
+    tracking_loss_probability: float
+    tracking_loss_length: tuple[int, int]
+    tracking_loss_distance_m: tuple[float, float]
+    template_start_probability: float
+    template_start_length: tuple[int, int]
+    template_end_probability: float
+    template_end_length: tuple[int, int]
+    template_distance_m: tuple[float, float]
+    template_max_fraction: float
+    hold_penetration_probability: float
+    hold_penetration_m: tuple[float, float]
+    hold_penetration_wobble_m: float
+    tip_inside_probability: float
+    tip_depth_mean_m: float
+    tip_depth_max_m: float
 
     def __post_init__(self) -> None:
         from dexflow.errors import ConfigError
@@ -188,9 +292,9 @@ class DemoConfig:
             if getattr(self, key) < 0:
                 raise ConfigError(f"demo.{key}: expected >= 0, found {getattr(self, key)!r}")
 
-    hand_scale: tuple[float, float] = (0.9, 1.1)
-    contact_tolerance_m: float = 0.001
-    sdf_spacing_m: float = 0.002
+    hand_scale: tuple[float, float]
+    contact_tolerance_m: float
+    sdf_spacing_m: float
 
 
 def _validate_demo(d: DemoConfig) -> None:
@@ -223,15 +327,16 @@ def _validate_demo(d: DemoConfig) -> None:
 
 
 @dataclass
+@conf_defaults("scale_align/default.yaml", "convex")
 class ConvexParams:
     """Convex decomposition of objects for simulation (CoACD)."""
 
-    threshold: float = 0.1
-    max_hulls: int = 16
-    preprocess_resolution: int = 30
-    mcts_iterations: int = 60
-    mcts_max_depth: int = 2
-    mcts_nodes: int = 10
+    threshold: float
+    max_hulls: int
+    preprocess_resolution: int
+    mcts_iterations: int
+    mcts_max_depth: int
+    mcts_nodes: int
 
     def __post_init__(self) -> None:
         _require(
@@ -240,12 +345,13 @@ class ConvexParams:
 
 
 @dataclass
+@conf_defaults("scale_align/default.yaml")
 class ScaleAlignParams:
     """Stage ``scale_align`` (``scale_align``)."""
 
-    sdf_spacing_m: float = 0.002
-    sdf_padding_m: float = 0.03
-    surface_samples: int = 4096
+    sdf_spacing_m: float
+    sdf_padding_m: float
+    surface_samples: int
     convex: ConvexParams = field(default_factory=ConvexParams)
 
     def __post_init__(self) -> None:
@@ -262,37 +368,39 @@ class ScaleAlignParams:
 
 
 @dataclass
+@conf_defaults("retarget/default.yaml", "global_search")
 class GlobalSearchParams:
     """nlopt global search used for initialisation (paper: GN_CRS2_LM)."""
 
-    mode: str = "first_frame"
-    algorithm: str = "GN_CRS2_LM"
-    max_evals: int = 400
-    seed: int = 0
+    mode: str
+    algorithm: str
+    max_evals: int
+    seed: int
 
 
 @dataclass
+@conf_defaults("retarget/default.yaml")
 class RetargetParams:
     """Stage ``retarget`` (``retarget`` in params.yaml). Weights are relative to metres²."""
 
     method: str = "dexflow"
-    alpha: float = 0.0002
-    lambda_diff: float = 0.01
-    gamma_pred: float = 0.05
-    window: int = 0
-    chunk_frames: int = 1000
-    chunk_overlap: int = 60
-    base_sigma_m: float = 0.05
-    base_sigma_rad: float = 0.5
-    robust_delta_m: float = 0.02
-    iterations: int = 30
-    tolerance: float = 1e-3
+    alpha: float
+    lambda_diff: float
+    gamma_pred: float
+    window: int
+    chunk_frames: int
+    chunk_overlap: int
+    base_sigma_m: float
+    base_sigma_rad: float
+    robust_delta_m: float
+    iterations: int
+    tolerance: float
     global_search: GlobalSearchParams = field(default_factory=GlobalSearchParams)
-    recover_error_m: float = 0.03
-    recover_factor: float = 3.0
-    max_recoveries: int = 5
-    jump_threshold_m: float = 0.08
-    lowpass_hz: float = 0.0
+    recover_error_m: float
+    recover_factor: float
+    max_recoveries: int
+    jump_threshold_m: float
+    lowpass_hz: float
 
 
 def _validate_retarget(r: RetargetParams) -> None:
@@ -334,21 +442,22 @@ def _validate_retarget(r: RetargetParams) -> None:
 
 
 @dataclass
+@conf_defaults("contact/default.yaml")
 class ContactParams:
     """Stage ``contact`` (``contact`` in params.yaml)."""
 
-    dis_min_m: float = 0.010
-    dis_max_m: float = 0.0158
-    alpha: float = 0.6
-    finger_speed_mps: float = 0.8
-    tau_c: float = 0.7
-    smoothing: bool = True
-    guard: bool = True
-    spline_tolerance_m: float = 0.01
-    beta1: float = 1.0
-    accel_tolerance_mps2: float = 5.0
-    v_max_mps: float = 0.5
-    map_points: int = 8
+    dis_min_m: float
+    dis_max_m: float
+    alpha: float
+    finger_speed_mps: float
+    tau_c: float
+    smoothing: bool
+    guard: bool
+    spline_tolerance_m: float
+    beta1: float
+    accel_tolerance_mps2: float
+    v_max_mps: float
+    map_points: int
 
 
 # Stage refine's dvc.yaml dep ``${refine.grip_input}``: replay@retarget's folder when the grip
@@ -358,51 +467,51 @@ NO_GRIP_INPUT = "data/contact"
 
 
 @dataclass
+@conf_defaults("refine/default.yaml")
 class RefineParams:
     """Stage ``refine`` (``refine`` in params.yaml)."""
 
-    finger_order: list[str] = field(
-        default_factory=lambda: ["thumb", "index", "middle", "ring", "little"]
-    )
-    w_dis: float = 1.0
-    w_pen: float = 30.0
-    w_align: float = 1e-5
-    w_spen: float = 0.01
-    w_joints: float = 1e-4
-    w_tip: float = 300.0
-    w_smooth: float = 0.1
-    spen_delta_m: float = 0.005
-    pen_margin_m: float = 0.001
-    spen_points: int = 64
-    iterations: int = 30
-    learning_rate: float = 0.03
-    blend_frames: float = 3.0
-    refine_base: bool = False
-    surface_tips: bool = True
-    release: bool = True
-    release_w_pen: float = 300.0
-    release_w_touch: float = 4000.0
-    release_w_track: float = 30.0
-    release_tip_weight: float = 30.0
-    release_w_smooth: float = 1000.0
-    release_w_smooth_joints: float = 1000.0
-    release_w_joints: float = 0.01
-    release_iterations: int = 60
-    release_first_iterations: int = 20
-    release_rounds: int = 4
-    release_depth_m: float = 0.0035
-    release_reach_m: float = 0.03
-    window_frames: int = 400
-    window_overlap: int = 40
-    grip_m: float = 0.0
-    grip_lead_frames: int = 10
-    grip_input: str = "data/contact"
+    finger_order: list[str]
+    w_dis: float
+    w_pen: float
+    w_align: float
+    w_spen: float
+    w_joints: float
+    w_tip: float
+    w_smooth: float
+    spen_delta_m: float
+    pen_margin_m: float
+    spen_points: int
+    iterations: int
+    learning_rate: float
+    blend_frames: float
+    refine_base: bool
+    surface_tips: bool
+    release: bool
+    release_w_pen: float
+    release_w_touch: float
+    release_w_track: float
+    release_tip_weight: float
+    release_w_smooth: float
+    release_w_smooth_joints: float
+    release_w_joints: float
+    release_iterations: int
+    release_first_iterations: int
+    release_rounds: int
+    release_depth_m: float
+    release_reach_m: float
+    window_frames: int
+    window_overlap: int
+    grip_m: float
+    grip_lead_frames: int
+    grip_input: str
 
 
 ENGINES = ("pybullet", "mujoco")
 
 
 @dataclass
+@conf_defaults("simulate/default.yaml", "mujoco")
 class MujocoParams:
     """The MuJoCo grasp test (``simulate.mujoco``): DexGraspBench's published settings.
 
@@ -422,20 +531,21 @@ class MujocoParams:
         steps_per_check: ... each after this many physics steps (50): 2 s per direction.
     """
 
-    timestep_s: float = 0.004
-    impratio: float = 10.0
-    kp: float = 5.0
-    joint_damping: float = 0.1
-    object_mass_kg: float = 0.1
-    friction: tuple[float, float] = (0.6, 0.02)
-    force_scale: float = 10.0
-    close_steps: int = 10
-    steps_per_control: int = 10
-    hold_checks: int = 10
-    steps_per_check: int = 50
+    timestep_s: float
+    impratio: float
+    kp: float
+    joint_damping: float
+    object_mass_kg: float
+    friction: tuple[float, float]
+    force_scale: float
+    close_steps: int
+    steps_per_control: int
+    hold_checks: int
+    steps_per_check: int
 
 
 @dataclass
+@conf_defaults("simulate/default.yaml", "perturbations")
 class PerturbationParams:
     """Robust success (``simulate.perturbations``): a frame succeeds only if it succeeds in the
     nominal test and under every one of ``count`` perturbed copies of it.
@@ -448,14 +558,15 @@ class PerturbationParams:
         seed: Seed of the perturbations (per frame: the same frame gets the same trials).
     """
 
-    count: int = 2
-    position_m: float = 0.001
-    rotation_deg: float = 2.0
-    friction_rel: float = 0.1
-    seed: int = 0
+    count: int
+    position_m: float
+    rotation_deg: float
+    friction_rel: float
+    seed: int
 
 
 @dataclass
+@conf_defaults("simulate/default.yaml")
 class SimulateParams:
     """Stage ``simulate`` (``simulate`` in params.yaml).
 
@@ -466,37 +577,38 @@ class SimulateParams:
     ``max_rotation_deg`` apply to both).
     """
 
-    engines: list[str] = field(default_factory=lambda: ["mujoco"])
+    engines: list[str]
     mujoco: MujocoParams = field(default_factory=MujocoParams)
     perturbations: PerturbationParams = field(default_factory=PerturbationParams)
 
-    control_dt_s: float = 1.0 / 60.0
-    substeps: int = 4
-    control_steps: int = 100
-    gravity: float = 9.8
-    object_mass_kg: float = 0.1
-    friction: float = 1.0
-    motor_force: float = 2.0
-    position_gain: float = 0.3
-    velocity_gain: float = 1.0
-    base_max_force: float = 1000.0
-    push_m: float = 0.005
-    contact_margin_m: float = 0.005
-    penetration_tol_m: float = 0.002
-    test_over_tolerance: bool = False
-    max_displacement_m: float = 0.05
-    max_rotation_deg: float = 15.0
-    drop_distance_m: float = 0.02
-    early_exit: bool = True
-    settle_steps: int = 20
-    stride: int = 5
-    early_stop: bool = True
-    max_frames: int = 0
-    massless_link_mass_kg: float = 0.002
-    massless_link_inertia_kgm2: float = 1e-7
+    control_dt_s: float
+    substeps: int
+    control_steps: int
+    gravity: float
+    object_mass_kg: float
+    friction: float
+    motor_force: float
+    position_gain: float
+    velocity_gain: float
+    base_max_force: float
+    push_m: float
+    contact_margin_m: float
+    penetration_tol_m: float
+    test_over_tolerance: bool
+    max_displacement_m: float
+    max_rotation_deg: float
+    drop_distance_m: float
+    early_exit: bool
+    settle_steps: int
+    stride: int
+    early_stop: bool
+    max_frames: int
+    massless_link_mass_kg: float
+    massless_link_inertia_kgm2: float
 
 
 @dataclass
+@conf_defaults("replay/default.yaml")
 class ReplayParams:
     """Stage ``replay`` (``replay`` in params.yaml): the trajectory played back in MuJoCo with
     the object free under gravity (see :mod:`dexflow.replay`).
@@ -537,27 +649,27 @@ class ReplayParams:
             ``release_distance_m`` away from the recorded hand meanwhile.
     """
 
-    lead_frames: int = 5
-    substeps: int = 8
-    base_frequency_hz: float = 20.0
-    base_force_n: float = 100.0
-    base_torque_nm: float = 10.0
-    kp: float = 20.0
-    joint_damping: float = 0.1
-    joint_torque_nm: float = 5.0
-    squeeze_m: float = 0.0
-    object_mass_kg: float = 0.1
-    friction: tuple[float, float] = (1.0, 0.02)
-    gravity: float = 9.81
-    max_position_error_m: float = 0.1
-    max_rotation_error_rad: float = 0.5
-    carried_fraction: float = 0.5
-    lost_position_m: float = 0.05
-    lost_rotation_rad: float = 0.5
-    release_distance_m: float = 0.05
-    support_tolerance_m: float = 0.05
-    free_fall_s: float = 0.2
-    free_fall_tolerance_mps2: float = 2.5
+    lead_frames: int
+    substeps: int
+    base_frequency_hz: float
+    base_force_n: float
+    base_torque_nm: float
+    kp: float
+    joint_damping: float
+    joint_torque_nm: float
+    squeeze_m: float
+    object_mass_kg: float
+    friction: tuple[float, float]
+    gravity: float
+    max_position_error_m: float
+    max_rotation_error_rad: float
+    carried_fraction: float
+    lost_position_m: float
+    lost_rotation_rad: float
+    release_distance_m: float
+    support_tolerance_m: float
+    free_fall_s: float
+    free_fall_tolerance_mps2: float
 
 
 def _validate_replay(r: ReplayParams) -> None:
@@ -608,16 +720,18 @@ def _validate_simulate(s: SimulateParams) -> None:
 
 
 @dataclass
+@conf_defaults("metrics/default.yaml")
 class MetricsParams:
     """Stage ``metrics`` (``metrics`` in params.yaml)."""
 
-    pd_violation_m: float = 0.005
-    spd_violation_m: float = 0.002
-    limit_tolerance_rad: float = 1e-4
-    kl_bins: int = 30
+    pd_violation_m: float
+    spd_violation_m: float
+    limit_tolerance_rad: float
+    kl_bins: int
 
 
 @dataclass
+@conf_defaults("run/local.yaml")
 class RunParams:
     """How stages map over sequences (``run``; see ``conf/run/*.yaml``). Results do not depend
     on it.
@@ -630,8 +744,8 @@ class RunParams:
             the cluster this machine is part of; ``"ray://<head>:10001"`` a remote one.
     """
 
-    backend: str = "local"
-    n_jobs: int = -1
+    backend: str
+    n_jobs: int
     address: str | None = None
 
     def __post_init__(self) -> None:
@@ -657,10 +771,11 @@ class RunParams:
 
 
 @dataclass
+@conf_defaults("config.yaml")
 class PipelineParams:
     """Everything in params.yaml."""
 
-    seed: int = 0
+    seed: int
     hand: HandParams = field(default_factory=HandParams)
     data: DataParams = field(default_factory=DataParams)
     demo: DemoConfig = field(default_factory=DemoConfig)
