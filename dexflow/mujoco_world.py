@@ -129,6 +129,17 @@ HAND_PREFIX = "hand/"  # before every name of the hand's in a scene
 logger = logging.getLogger(__name__)
 
 
+def _log_mujoco_warning(text: str) -> None:
+    """MuJoCo's warnings (an unstable simulation, too many contacts) go to dexflow's log: its
+    own handler appends them to ``MUJOCO_LOG.TXT`` in the working directory, which nobody asked
+    for. The per-model warning counters (``MjData.warning``, what ``hand check`` reads) count
+    them either way."""
+    logger.warning("MuJoCo: %s", text)
+
+
+mujoco.set_mju_user_warning(_log_mujoco_warning)
+
+
 # -------------------------------------------------------------------------------- the scene
 
 

@@ -348,3 +348,21 @@ def test_test_frame_needs_an_object(tmp_path):
     world = MujocoGraspWorld(load_hand(_gripper(tmp_path)), SimulateParams())
     with pytest.raises(RuntimeError, match="set_object first"):
         world.test_frame(np.zeros(12), np.eye(4))
+
+
+def test_mujoco_warnings_go_to_the_log_not_to_a_file_in_the_working_directory(
+    tmp_path, monkeypatch, caplog
+):
+    """An unstable step makes MuJoCo warn; dexflow logs it and writes no MUJOCO_LOG.TXT where
+    it runs (MuJoCo's own handler would), and the model's warning counter still counts it."""
+    monkeypatch.chdir(tmp_path)
+    model = mujoco.MjModel.from_xml_string(
+        "<mujoco><worldbody><body><freejoint/><geom size='0.1'/></body></worldbody></mujoco>"
+    )
+    data = mujoco.MjData(model)
+    data.qvel[:] = np.inf
+    with caplog.at_level("WARNING", logger="dexflow.mujoco_world"):
+        mujoco.mj_step(model, data)
+    assert list(tmp_path.iterdir()) == []
+    assert "MuJoCo: Nan, Inf or huge value in QVEL" in caplog.text
+    assert data.warning[mujoco.mjtWarning.mjWARN_BADQVEL].number == 1
