@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -9,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dexflow.errors import ConfigError
 from dexflow.io.layout import Layout, StageDir
 from dexflow.params import SimulateParams
 from dexflow.tip_motion import NEAR_M
@@ -270,7 +272,6 @@ def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 
     refined demo frames after first contact, in one run: pybullet (with the stage's early exits,
     and all six full tests), MuJoCo (DexGraspBench's protocol, the stage's default engine), and
     the ratio of MuJoCo to pybullet. Needs `dvc repro`."""
-    import dataclasses
 
     from dexflow.config import load_params
     from dexflow.hands.robot import load_hand
@@ -374,7 +375,6 @@ def bench_pipeline(
     so that scale_align is timed as on a first run. Runs in a temporary directory; writes
     ``out``.
     """
-    import dataclasses
     import os
     import shutil
     import tempfile
@@ -490,33 +490,37 @@ def _peak_rss_mb() -> float:
 
 
 def _pipeline_stages(params, layout) -> list[tuple[str, Callable[[], dict]]]:
-    """Every stage of ``dvc.yaml`` as (name, call) on the project ``layout``, in its order:
-    the stage specs the stage scripts run, with the same arguments (``foreach`` items)."""
+    """Every stage of ``dvc.yaml`` as (name, call) on the project ``layout``, in the order
+    :func:`dexflow.sweep.load_stages` reads from it (file order, a stage after those whose
+    outputs it reads with these ``params``: refine after replay@retarget only with the grip
+    on): the stage specs the stage scripts run, with the same arguments (``foreach`` items).
+    The demo is called ``demo``; the report, which times nothing, is left out.
+
+    Raises:
+        ConfigError: ``dvc.yaml`` has a stage that no stage module defines.
+    """
     from dexflow import align, contact, hand_stage, metrics, refine, replay, retarget, simulate
     from dexflow.data.demo import generate_demo
-    from dexflow.io.layout import TRAJECTORIES
     from dexflow.runner import run_stage
+    from dexflow.sweep import load_stages
 
-    steps = [(hand_stage.STAGE, ()), (align.STAGE, ())]
-    steps += [(retarget.STAGE, (method,)) for method in ("dexflow", "position")]
-    steps += [(contact.STAGE, ())]
-    # the order dexflow.sweep runs dvc.yaml in: refine waits on replay@retarget only when its
-    # grip reads it (refine.grip_input)
-    before, after = TRAJECTORIES[:-1], TRAJECTORIES[-1:]
-    if params.refine.grip_m == 0:
-        before, after = [], TRAJECTORIES
-    steps += [(simulate.STAGE, (label,)) for label in before]
-    steps += [(replay.STAGE, (label,)) for label in before]
-    steps += [(refine.STAGE, ())]
-    steps += [(simulate.STAGE, (label,)) for label in after]
-    steps += [(replay.STAGE, (label,)) for label in after]
-    steps += [(metrics.STAGE, ())]
+    modules = (hand_stage, align, retarget, contact, refine, simulate, replay, metrics)
+    specs = {module.STAGE.name: module.STAGE for module in modules}
+    dvc_yaml = Path(__file__).resolve().parents[1] / "dvc.yaml"
 
     def call(spec, args) -> Callable[[], dict]:
         return lambda: run_stage(spec, params, layout, args)
 
-    demo = ("demo", lambda: generate_demo(params.demo, layout.data.root, params.run))
-    return [demo] + [("@".join([spec.name, *args]), call(spec, args)) for spec, args in steps]
+    steps = []
+    for stage in load_stages(dvc_yaml, dataclasses.asdict(params)):
+        base, _, item = stage.name.partition("@")
+        if base == "demo":
+            steps.append(("demo", lambda: generate_demo(params.demo, layout.data.root, params.run)))
+        elif base in specs:
+            steps.append((stage.name, call(specs[base], (item,) if item else ())))
+        elif base != "report":
+            raise ConfigError(f"{dvc_yaml}: stage {base!r} is run by no dexflow stage module")
+    return steps
 
 
 def _bench_table(runs: list[dict], command: str, what: str) -> list[str]:
@@ -643,7 +647,6 @@ for name, fn in _pipeline_stages(params, Layout.of(data_root, root=project)):
 def _long_sequence(source: Path, frames: int, folder: Path) -> Path:
     """A data root in ``folder`` holding one sequence of ``frames`` frames: the first sequence
     of ``source`` played forward and backward in turn (a continuous motion), meshes linked."""
-    import dataclasses
 
     from dexflow.io.sequence import load_sequence, save_sequence
 
@@ -683,7 +686,6 @@ def bench_long(
     frames show in the ratios between the lengths (4x the frames: 4x the time, and memory that
     stays bounded where the stage works through the frames in chunks).
     """
-    import dataclasses
     import json
     import os
     import shutil
@@ -828,7 +830,6 @@ def bench_real(
         and ``retarget_s_per_sequence`` (CPU seconds of retarget@dexflow per sequence:
         wall-clock time x workers / sequences).
     """
-    import dataclasses
     import shutil
     import tempfile
 
