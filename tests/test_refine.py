@@ -582,13 +582,18 @@ def _touching_scene(hand, frames: int = 6):
     """The index pad on a box's face in ``frames`` frames, in contact, with its contact map."""
     q, pose, box, grid = _scene(hand, 0.0)
     q, pose = np.repeat(q[:1], frames, 0), np.repeat(pose[:1], frames, 0)
-    contact = np.zeros((frames, 4), dtype=bool)
+    return q, pose, grid, *_index_contact(hand, q, pose, box, grid)
+
+
+def _index_contact(hand, q, pose, box, grid):
+    """The index finger in contact in every frame, and its contact map on ``box``."""
+    contact = np.zeros((len(q), 4), dtype=bool)
     contact[:, list(hand.spec.fingers).index("index")] = True
     _, dist, local = finger_distances(hand, q, pose, grid)
     points, faces = trimesh.sample.sample_surface(box, 4000, seed=0)
     masks = list(hand.finger_point_masks.values())
     cmap = _contact_map(local, dist, contact, masks, cKDTree(points), box.face_normals[faces], 8)
-    return q, pose, grid, contact, cmap
+    return contact, cmap
 
 
 def test_grip_presses_the_contact_fingers_in_from_the_given_frame_on(allegro):
@@ -698,12 +703,7 @@ def test_the_finger_step_holds_the_fingertip_across_the_normal(allegro, gap):
     across the normal, and the pad still reaches the surface along it (from 4 mm inside or
     8 mm away)."""
     q, pose, box, grid = _scene(allegro, gap)
-    contact = np.zeros((FRAMES, 4), dtype=bool)
-    contact[:, list(allegro.spec.fingers).index("index")] = True
-    _, dist, local = finger_distances(allegro, q, pose, grid)
-    points, faces = trimesh.sample.sample_surface(box, 4000, seed=0)
-    masks = list(allegro.finger_point_masks.values())
-    cmap = _contact_map(local, dist, contact, masks, cKDTree(points), box.face_normals[faces], 8)
+    contact, cmap = _index_contact(allegro, q, pose, box, grid)
     tip = allegro.fingertip_keypoints[1]
     normal = -pose[0, :3, 0]  # the face's outward normal (the pad faces the tip frame's +x)
     sideways = _flex_direction(allegro, q[:1], "joint_0.0", tip)  # abduction
