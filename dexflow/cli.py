@@ -1,4 +1,8 @@
-"""The ``dexflow`` command.
+"""dexflow: human hand-object captures to robot-hand trajectories (the DexFlow method).
+
+The pipeline itself runs with `dvc repro` (stages in dvc.yaml, parameters composed from conf/
+into params.yaml); this command prepares its inputs, checks hands and data, benchmarks and
+writes reports. `dexflow SUBCOMMAND --help` describes each.
 
 Subcommands:
   params [OVERRIDE ...] [--check]   compose conf/ into params.yaml (as `dvc exp run` does)
@@ -377,7 +381,11 @@ def _cmd_view(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="dexflow", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="dexflow",
+        description="\n\n".join(__doc__.split("\n\n")[:2]),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
 

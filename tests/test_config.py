@@ -161,3 +161,16 @@ def test_dvc_has_a_demo_stage_only_where_the_data_is_the_demo(tmp_path, override
     ).stdout.split()
     assert ("demo@demo" in listed) == demo == any(s.startswith("demo") for s in listed), listed
     assert {"scale_align", "retarget@dexflow", "refine", "report"} <= set(listed)
+
+
+def test_dexflow_help_says_what_the_command_is_for(capsys):
+    """`dexflow --help` names the product, says that `dvc repro` runs the pipeline, and lists
+    every subcommand."""
+    from dexflow.cli import build_parser
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--help"])
+    text = capsys.readouterr().out
+    assert "robot-hand trajectories" in text and "dvc repro" in text
+    for command in ("params", "validate", "demo", "convert", "hand", "bench", "report", "view"):
+        assert command in text
