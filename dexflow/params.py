@@ -611,7 +611,7 @@ class SimulateParams:
 @conf_defaults("replay/default.yaml")
 class ReplayParams:
     """Stage ``replay`` (``replay`` in params.yaml): the trajectory played back in MuJoCo with
-    the object free under gravity (see :mod:`dexflow.replay`).
+    the object free under gravity (see :mod:`dexflow.stages.replay`).
 
     Attributes:
         lead_frames: Frames before the first contact the replay starts at (the hand approaches).

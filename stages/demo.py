@@ -2,8 +2,8 @@
 
 import sys
 
-from dexflow.data.demo import STAGE
-from dexflow.runner import stage_main
+from dexflow.pipeline.runner import stage_main
+from dexflow.stages.demo import STAGE
 
 if __name__ == "__main__":
     sys.exit(stage_main(STAGE, sys.argv[1:]))

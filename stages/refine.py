@@ -1,9 +1,9 @@
-"""Stage refine: retargeted ``q`` + contacts -> ``data/refine`` (see dexflow.refine)."""
+"""Stage refine: retargeted ``q`` + contacts -> ``data/refine`` (see dexflow.stages.refine)."""
 
 import sys
 
-from dexflow.refine import STAGE
-from dexflow.runner import stage_main
+from dexflow.pipeline.runner import stage_main
+from dexflow.stages.refine import STAGE
 
 if __name__ == "__main__":
     sys.exit(stage_main(STAGE, sys.argv[1:]))

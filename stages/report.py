@@ -1,9 +1,9 @@
-"""Stage report: metrics -> ``reports/summary.md`` and its figures (see dexflow.report)."""
+"""Stage report: metrics -> ``reports/summary.md`` and its figures (see dexflow.stages.report)."""
 
 import sys
 
-from dexflow.report import STAGE
-from dexflow.runner import stage_main
+from dexflow.pipeline.runner import stage_main
+from dexflow.stages.report import STAGE
 
 if __name__ == "__main__":
     sys.exit(stage_main(STAGE, sys.argv[1:]))

@@ -1,9 +1,9 @@
-"""Stage scale_align: ``data.root`` -> ``data/scale_align`` (see dexflow.align)."""
+"""Stage scale_align: ``data.root`` -> ``data/scale_align`` (see dexflow.stages.scale_align)."""
 
 import sys
 
-from dexflow.align import STAGE
-from dexflow.runner import stage_main
+from dexflow.pipeline.runner import stage_main
+from dexflow.stages.scale_align import STAGE
 
 if __name__ == "__main__":
     sys.exit(stage_main(STAGE, sys.argv[1:]))

@@ -11,9 +11,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dexflow import ablation, provenance
-from dexflow.ablation import DEFAULT, compare, load_result, suite_experiments, write_suite_report
 from dexflow.io.layout import Layout
+from dexflow.pipeline import provenance
+from dexflow.tools import ablation
+from dexflow.tools.ablation import (
+    DEFAULT,
+    compare,
+    load_result,
+    suite_experiments,
+    write_suite_report,
+)
 
 OTHER = "0123456789ab"  # the machine id of a machine that is not this one
 
@@ -77,7 +84,7 @@ def _failed(root: Path, name: str) -> Path:
 
 def _running(root: Path, name: str) -> Path:
     """An experiment in the middle of its refine stage (or killed there)."""
-    from dexflow.sweep import UNFINISHED
+    from dexflow.tools.sweep import UNFINISHED
 
     job = root / name
     job.mkdir(parents=True)
@@ -178,7 +185,7 @@ def test_a_report_without_a_finished_default_says_so(tmp_path):
 
 
 def _fake_run_job(ran: list[str], failing: tuple[str, ...] = ()):
-    """A stand-in for dexflow.sweep.run_job that records its calls and leaves an experiment
+    """A stand-in for dexflow.tools.sweep.run_job that records its calls and leaves an experiment
     made on this machine, finished but for those ``failing`` (the pipeline itself is tested in
     test_sweep.py)."""
 
@@ -204,7 +211,7 @@ def test_run_suite_reuses_finished_experiments_and_reruns_changed_or_failed_ones
     tmp_path, monkeypatch
 ):
     ran: list[str] = []
-    monkeypatch.setattr("dexflow.sweep.run_job", _fake_run_job(ran, failing=("allegro",)))
+    monkeypatch.setattr("dexflow.tools.sweep.run_job", _fake_run_job(ran, failing=("allegro",)))
     root = Path(__file__).resolve().parents[1]
     names = suite_experiments("paper")
     ablation.run_suite("paper", root, tmp_path, ["seed=3"])
@@ -227,7 +234,7 @@ def test_run_suite_reuses_finished_experiments_and_reruns_changed_or_failed_ones
 
 def test_run_suite_reruns_an_experiment_finished_on_another_machine(tmp_path, monkeypatch):
     ran: list[str] = []
-    monkeypatch.setattr("dexflow.sweep.run_job", _fake_run_job(ran))
+    monkeypatch.setattr("dexflow.tools.sweep.run_job", _fake_run_job(ran))
     question = ablation.Question("q", "Q?", ("no_temporal",), ("refine",), ("pd_mm",))
     monkeypatch.setitem(ablation.SUITES, "tiny", (question,))
     root = Path(__file__).resolve().parents[1]
@@ -298,7 +305,7 @@ def test_an_experiment_whose_config_is_rejected_fails_alone(tmp_path, monkeypatc
         (Path(job_dir) / "sweep_status.json").write_text(json.dumps({"status": "ok"}))
         return {"status": "ok"}
 
-    monkeypatch.setattr("dexflow.sweep.run_job", fake_run_job)
+    monkeypatch.setattr("dexflow.tools.sweep.run_job", fake_run_job)
     monkeypatch.setitem(
         ablation.SUITES,
         "broken",

@@ -318,7 +318,7 @@ def test_convert_gathers_several_sources_or_a_dataset_root_and_skips_missing_mes
 
 
 def test_convert_command_exit_status(tmp_path, capsys):
-    from dexflow.cli import main
+    from dexflow.tools.cli import main
 
     captures, models = _two_subjects(tmp_path)
     subjects = [str(p) for p in sorted(captures.iterdir())]
@@ -416,11 +416,11 @@ def test_mano_joints_from_a_structurally_valid_fake_model(tmp_path):
 
 
 def test_converted_data_runs_through_the_pipeline_like_the_demo(tmp_path):
-    from dexflow.align import run_scale_align
-    from dexflow.hand_stage import run_hand
     from dexflow.io.layout import Layout
     from dexflow.params import PipelineParams
-    from dexflow.retarget import run_retarget
+    from dexflow.stages.hand import run_hand
+    from dexflow.stages.retarget import run_retarget
+    from dexflow.stages.scale_align import run_scale_align
 
     n = 40
     gen = tmp_path / "gen"

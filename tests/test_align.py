@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from dexflow.align import run_scale_align, scale_sequence
 from dexflow.io.layout import Layout
 from dexflow.io.sequence import load_sequence, save_sequence
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import PipelineParams
+from dexflow.stages.scale_align import run_scale_align, scale_sequence
 
 from .conftest import make_sequence
 

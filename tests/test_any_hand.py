@@ -20,19 +20,19 @@ import mujoco
 import numpy as np
 import pytest
 
-from dexflow.bench import _pipeline_stages
-from dexflow.cli import main as cli_main
 from dexflow.config import compose_params, load_params
 from dexflow.errors import HandConfigError
 from dexflow.hands import load_hand
 from dexflow.hands.init import init_hand
 from dexflow.hands.physics import WORLD_ALIAS, physics_urdf, repair_inertia
 from dexflow.io.layout import Layout, project_root
-from dexflow.mujoco_world import MujocoGraspWorld, hand_name
 from dexflow.params import SimulateParams
-from dexflow.runner import stage_main
-from dexflow.scene_check import _unstable, check_scenes
-from dexflow.simulate import GraspWorld, hand_urdf
+from dexflow.pipeline.runner import stage_main
+from dexflow.sim.mujoco_world import MujocoGraspWorld, hand_name
+from dexflow.sim.pybullet_world import PybulletGraspWorld, hand_urdf
+from dexflow.sim.scene_check import _unstable, check_scenes
+from dexflow.tools.bench import _pipeline_stages
+from dexflow.tools.cli import main as cli_main
 from tests.hand_models import PUBLIC_SHAPES, hand4
 
 # ------------------------------------------------------------------------------ the repairs
@@ -106,7 +106,7 @@ def test_engines_get_the_same_repaired_inertias(tmp_path):
     assert any("link 'palm'" in r and "A + B >= C" in r for r in repairs)
     assert hand_urdf(hand, params) == urdf != hand.model.path
     m = MujocoGraspWorld(hand, params).model
-    bullet = GraspWorld(hand, urdf, params)
+    bullet = PybulletGraspWorld(hand, urdf, params)
     for link in ("palm", "if_proximal", "th_distal"):
         moments = m.body(hand_name(link)).inertia
         assert moments == pytest.approx([moments.mean()] * 3)  # balanced
@@ -149,7 +149,7 @@ def _ply_palm(folder: Path) -> Path:
 def test_a_hand_the_engines_cannot_load_stops_the_stage_once(tmp_path, monkeypatch, caplog):
     """Stage simulate exits 2 with one line naming the hand and the file, not a retry per
     sequence; ``hand check`` says the same before any stage runs."""
-    from dexflow.simulate import STAGE
+    from dexflow.stages.simulate import STAGE
 
     project = _project(tmp_path, "plyhand", _ply_palm)
     params = load_params(project / "params.yaml")
@@ -234,7 +234,7 @@ def test_public_shaped_hand_through_dvc_repro(tmp_path):
     dag = run("dvc", "dag", "refine")  # refine and the stages it waits on
     assert "contact" in dag and "replay" not in dag  # no replay while the grip is off
     run("dvc", "repro")
-    out = run(sys.executable, "-m", "dexflow.cli", "hand", "check", "world_rooted_left")
+    out = run(sys.executable, "-m", "dexflow.tools.cli", "hand", "check", "world_rooted_left")
     assert "physics (params.yaml, engines mujoco)" in out and "\nok\n" in out
     for stage in ("simulate/refine", "replay/refine", "replay/retarget"):
         done = json.loads((project / "data" / stage / "summary.json").read_text())

@@ -22,21 +22,21 @@ import numpy as np
 import pytest
 import trimesh
 
-import dexflow.align
-from dexflow.align import STAGE as SCALE_ALIGN
-from dexflow.align import run_scale_align
+import dexflow.stages.scale_align
 from dexflow.errors import IncompleteStageError, MeshError, SequenceFormatError
-from dexflow.hand_stage import run_hand
 from dexflow.hands.spec import load_hand_spec
 from dexflow.io.layout import Layout, StageDir
 from dexflow.io.mirror import MIRROR, mirror_mesh
 from dexflow.io.sequence import load_sequence, save_sequence, validate_sequence
-from dexflow.parallel import map_items
 from dexflow.params import PipelineParams, RunParams
-from dexflow.report import write_summary
-from dexflow.resume import DONE_DIR
-from dexflow.retarget import run_retarget
-from dexflow.runner import StageSpec, run_stage, stage_main
+from dexflow.pipeline.parallel import map_items
+from dexflow.pipeline.resume import DONE_DIR
+from dexflow.pipeline.runner import StageSpec, run_stage, stage_main
+from dexflow.stages.hand import run_hand
+from dexflow.stages.report import write_summary
+from dexflow.stages.retarget import run_retarget
+from dexflow.stages.scale_align import STAGE as SCALE_ALIGN
+from dexflow.stages.scale_align import run_scale_align
 
 from .conftest import make_sequence
 from .test_metrics import _metrics_dir
@@ -122,14 +122,14 @@ def test_a_full_disk_fails_the_stage_and_the_rerun_retries_only_that_sequence(
     for i in range(3):
         _save(data_root, f"s{i}", make_sequence(10 + i))
     layout = Layout.of(data_root, root=tmp_path_factory.mktemp("project"))
-    real_save = dexflow.align.save_sequence
+    real_save = dexflow.stages.scale_align.save_sequence
 
     def disk_full_on_s1(path, *args, **kwargs):
         if Path(path).stem == "s1":
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
         return real_save(path, *args, **kwargs)
 
-    monkeypatch.setattr(dexflow.align, "save_sequence", disk_full_on_s1)
+    monkeypatch.setattr(dexflow.stages.scale_align, "save_sequence", disk_full_on_s1)
     with pytest.raises(IncompleteStageError, match=r"s1: OSError: \[Errno 28\]") as info:
         run_stage(SCALE_ALIGN, _params(), layout)
     assert list(info.value.failed) == ["s1"]
@@ -138,11 +138,11 @@ def test_a_full_disk_fails_the_stage_and_the_rerun_retries_only_that_sequence(
     assert not layout.stage_metrics("scale_align").exists()
     assert sorted(p.stem for p in (out / DONE_DIR / "sequences").iterdir()) == ["s0", "s2"]
 
-    monkeypatch.setattr(dexflow.align, "save_sequence", real_save)
+    monkeypatch.setattr(dexflow.stages.scale_align, "save_sequence", real_save)
     computed = []
-    real_align = dexflow.align.align_sequence
+    real_align = dexflow.stages.scale_align.align_sequence
     monkeypatch.setattr(
-        dexflow.align,
+        dexflow.stages.scale_align,
         "align_sequence",
         lambda path, *a, **k: computed.append(Path(path).stem) or real_align(path, *a, **k),
     )
@@ -271,8 +271,10 @@ def test_scale_align_never_reads_a_mesh_outside_the_data_root(tmp_path, monkeypa
     _raw(root, "outside", make_sequence(10), obj_mesh=np.array("../outside.obj"))
     _raw(root, "absolute", make_sequence(10), obj_mesh=np.array(str(tmp_path / "outside.obj")))
     read = []
-    real = dexflow.align.load_mesh
-    monkeypatch.setattr(dexflow.align, "load_mesh", lambda p: read.append(Path(p)) or real(p))
+    real = dexflow.stages.scale_align.load_mesh
+    monkeypatch.setattr(
+        dexflow.stages.scale_align, "load_mesh", lambda p: read.append(Path(p)) or real(p)
+    )
     summary = run_scale_align(_params(), Layout.of(root, root=tmp_path / "project"))
     assert summary["num_ok"] == 1 and summary["num_objects"] == 1
     assert read == [root / "meshes" / "box.obj"]
@@ -379,7 +381,7 @@ def test_a_hand_that_never_comes_near_the_object_is_warned_about(data_root, tmp_
 
 
 def test_hidden_files_are_not_sequences(tmp_path, capsys):
-    from dexflow.cli import main
+    from dexflow.tools.cli import main
 
     stage = StageDir(tmp_path)
     stage.sequences_dir.mkdir()
@@ -421,7 +423,7 @@ def test_a_file_that_is_not_an_npz_archive_says_what_it_is(tmp_path, write, word
     ],
 )
 def test_validate_loads_the_mesh_as_scale_align_will(data_root, capsys, mesh_text, words):
-    from dexflow.cli import main
+    from dexflow.tools.cli import main
 
     mesh = data_root / "meshes" / "bad.obj"
     if mesh_text is None:
@@ -436,11 +438,11 @@ def test_validate_loads_the_mesh_as_scale_align_will(data_root, capsys, mesh_tex
     assert "bad_mesh.npz: field 'obj_mesh'" in fail and "bad.obj" in fail and words in fail
     assert "1 valid, 1 invalid" in out
     with pytest.raises(MeshError, match=words):  # scale_align refuses it the same way
-        dexflow.align.load_mesh(mesh)
+        dexflow.stages.scale_align.load_mesh(mesh)
 
 
 def test_a_yaml_syntax_error_is_one_line_with_its_place(tmp_path, capsys):
-    from dexflow.cli import main
+    from dexflow.tools.cli import main
 
     hand = tmp_path / "myhand.yaml"
     hand.write_text((ROOT / "conf" / "hand" / "allegro.yaml").read_text() + "scale: [1\n")

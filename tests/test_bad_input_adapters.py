@@ -11,9 +11,9 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from dexflow.cli import main
 from dexflow.data.adapters import DatasetLayoutError, convert
 from dexflow.io.sequence import load_sequence
+from dexflow.tools.cli import main
 
 from .test_adapters import _box, _hand, _make_dexycb, _poses, _write_ho3d
 

@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 
-from dexflow.bench import _real_table, _subset_root, grasp_breakdown
 from dexflow.io.artifacts import ENGINE_KEYS, SimulationResult, write_simulation
 from dexflow.io.layout import StageDir
+from dexflow.tools.bench import _real_table, _subset_root, grasp_breakdown
 
 
 def test_subset_links_evenly_spaced_sequences_and_the_rest_of_the_root(tmp_path):
@@ -92,7 +92,7 @@ def test_table_shows_each_engine_and_their_agreement_and_the_overrides():
 
 
 def test_table_says_where_refinement_moved_the_fingertips():
-    """With the motion summary (dexflow.tip_motion) a row per hand; without it no table."""
+    """With the motion summary (dexflow.tools.tip_motion) a row per hand; without it no table."""
     motion = {"tips": 40, "tip_depth_mm": 1.44, "near_share": 0.51, "near_error_from_mm": 4.46,
               "near_error_to_mm": 13.54, "normal_mm": 7.09, "outward_mm": 4.13,
               "tangential_mm": 8.36, "far_error_from_mm": 6.25, "far_error_to_mm": 7.49,

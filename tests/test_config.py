@@ -166,7 +166,7 @@ def test_dvc_has_a_demo_stage_only_where_the_data_is_the_demo(tmp_path, override
 def test_dexflow_help_says_what_the_command_is_for(capsys):
     """`dexflow --help` names the product, says that `dvc repro` runs the pipeline, and lists
     every subcommand."""
-    from dexflow.cli import build_parser
+    from dexflow.tools.cli import build_parser
 
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--help"])

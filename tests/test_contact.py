@@ -7,10 +7,10 @@ import pytest
 import torch
 import trimesh
 
-from dexflow.contact import finger_distances, hysteresis, infer_frames, state_changes
 from dexflow.hands import load_hand
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import ContactParams
+from dexflow.stages.contact import finger_distances, hysteresis, infer_frames, state_changes
 
 P = ContactParams()
 
@@ -82,7 +82,7 @@ def test_finger_distances_sign_on_a_box_with_a_hole():
 
 def test_contact_sequence_writes_a_consistent_contact_map(tmp_path):
     """A hand touching a box: the map pairs contact-finger points with surface points."""
-    from dexflow.contact import _contact_map, contact_states
+    from dexflow.stages.contact import _contact_map, contact_states
 
     hand = load_hand("allegro")
     q = hand.zero(4).numpy()

@@ -9,8 +9,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from dexflow.align import run_scale_align
-from dexflow.contact import (
+from dexflow.hands import load_hand
+from dexflow.hands.spec import load_hand_spec
+from dexflow.io.artifacts import ObjectAssets
+from dexflow.io.layout import Layout
+from dexflow.io.sequence import load_sequence, save_sequence
+from dexflow.measures import flicker_reduction, hand_object_depths, state_flicker
+from dexflow.params import ContactParams, PipelineParams, RunParams
+from dexflow.stages.contact import (
     band_jumps,
     contact_summary,
     hysteresis,
@@ -19,14 +25,8 @@ from dexflow.contact import (
     one_frame_runs,
     run_contact,
 )
-from dexflow.hand_stage import run_hand
-from dexflow.hands import load_hand
-from dexflow.hands.spec import load_hand_spec
-from dexflow.io.artifacts import ObjectAssets
-from dexflow.io.layout import Layout
-from dexflow.io.sequence import load_sequence, save_sequence
-from dexflow.measures import flicker_reduction, hand_object_depths, state_flicker
-from dexflow.params import ContactParams, PipelineParams, RunParams
+from dexflow.stages.hand import run_hand
+from dexflow.stages.scale_align import run_scale_align
 
 from .conftest import make_sequence
 

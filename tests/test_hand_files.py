@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from dexflow.errors import HandConfigError
-from dexflow.hand_stage import run_hand
 from dexflow.hands.files import (
     copy_model,
     model_files,
@@ -21,6 +20,7 @@ from dexflow.hands.robot import RobotHand
 from dexflow.hands.spec import load_hand_spec
 from dexflow.io.layout import Layout
 from dexflow.params import PipelineParams
+from dexflow.stages.hand import run_hand
 
 SHADOW = "pkg://gymnasium_robotics/envs/assets/hand/reach.xml"
 ALLEGRO = "pkg://dexflow/hands/assets/allegro_right.urdf"

@@ -18,8 +18,6 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from dexflow.align import _mirror, scale_sequence
-from dexflow.cli import main as cli_main
 from dexflow.errors import HandConfigError
 from dexflow.hands import load_hand, load_hand_spec
 from dexflow.hands.init import init_hand, mirror_model, propose_hand
@@ -28,7 +26,9 @@ from dexflow.hands.robot import RobotHand
 from dexflow.human.model import forward_keypoints
 from dexflow.io.sequence import Sequence
 from dexflow.params import RetargetParams
-from dexflow.retarget import retarget_sequence
+from dexflow.stages.retarget import retarget_sequence
+from dexflow.stages.scale_align import _mirror, scale_sequence
+from dexflow.tools.cli import main as cli_main
 from tests.hand_models import MIRROR, MJCF_HAND, gripper, hand4, hand5
 
 

@@ -13,13 +13,13 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from dexflow.cli import main as cli_main
 from dexflow.errors import HandConfigError
 from dexflow.hands import load_hand
 from dexflow.hands.check import check_hand
 from dexflow.hands.export import export_urdf
 from dexflow.hands.model import _origin
 from dexflow.hands.robot import base_transform, sharp_edge_points
+from dexflow.tools.cli import main as cli_main
 
 
 @pytest.fixture(scope="module")

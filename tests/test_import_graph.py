@@ -16,17 +16,27 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = "dexflow"
 
-# The module of each pipeline stage (the stage of dvc.yaml in the comment).
-STAGE_MODULES = (
-    "dexflow.data.demo",  # demo
-    "dexflow.align",  # scale_align
-    "dexflow.retarget",  # retarget
-    "dexflow.contact",  # contact
-    "dexflow.refine",  # refine
-    "dexflow.simulate",  # simulate
-    "dexflow.metrics",  # metrics
-    "dexflow.report",  # report
+# The module of each pipeline stage: dexflow/stages/<name>.py for stage <name> of dvc.yaml
+# (tests/test_registry.py checks that the two lists are the same).
+STAGE_MODULES = tuple(
+    f"dexflow.stages.{path.stem}"
+    for path in sorted((ROOT / PACKAGE / "stages").glob("*.py"))
+    if path.stem != "__init__"
 )
+
+# The layers of the package, lowest first: a module imports only from its own layer and those
+# below (a name is a module or a package and everything below it). `dexflow` itself (the
+# package root) is the lowest.
+LAYERS = (
+    ("foundation", ("dexflow", "dexflow.errors", "dexflow.geometry")),
+    ("models", ("dexflow.io", "dexflow.objects", "dexflow.human", "dexflow.hands")),
+    ("schema and measures", ("dexflow.config", "dexflow.params", "dexflow.measures",
+                             "dexflow.stats", "dexflow.plots")),
+    ("pipeline plumbing", ("dexflow.pipeline",)),
+    ("engines and data", ("dexflow.sim", "dexflow.data")),
+    ("stages", ("dexflow.stages",)),
+    ("tools", ("dexflow.tools",)),
+)  # fmt: skip
 
 
 @cache
@@ -124,11 +134,15 @@ def test_graph_sees_imports():
     """The graph is no empty one that would pass everything: known imports are found."""
     graph = import_graph()
     assert set(STAGE_MODULES) <= set(graph), "a stage module is missing from dexflow/"
-    assert "dexflow.hands.robot" in graph["dexflow.refine"]  # a top-level `from ... import`
-    assert "dexflow.measures" in graph["dexflow.retarget"]  # a function-local one
+    assert "dexflow.hands.robot" in graph["dexflow.stages.refine"]  # a top-level `from ... import`
+    assert "dexflow.measures" in graph["dexflow.stages.retarget"]  # a function-local one
     assert "dexflow.objects.sdf" in graph["dexflow.measures"]  # a TYPE_CHECKING one
-    assert "dexflow.report" in graph["dexflow.cli"]  # `from dexflow import report`: a submodule
-    assert "dexflow.errors" in closure({"dexflow.refine"})  # transitively, via dexflow.hands...
+    assert (
+        "dexflow.stages.report" in graph["dexflow.tools.cli"]
+    )  # `from dexflow import report`: a submodule
+    assert "dexflow.errors" in closure(
+        {"dexflow.stages.refine"}
+    )  # transitively, via dexflow.hands...
     assert "dexflow.hands" in closure({"dexflow.hands.robot"})  # its package runs too
 
 
@@ -155,3 +169,42 @@ def test_config_imports_no_stage():
 def test_params_imports_no_stage():
     found = _stages_reached("dexflow.params")
     assert not found, "dexflow.params must not import a stage module:\n" + "\n".join(found)
+
+
+def layer_of(module: str) -> int | None:
+    """The index in :data:`LAYERS` of the most specific name ``module`` falls under."""
+    found, depth = None, -1
+    for i, (_, names) in enumerate(LAYERS):
+        for name in names:
+            under = module == name or (name != PACKAGE and module.startswith(name + "."))
+            if under and name.count(".") > depth:
+                found, depth = i, name.count(".")
+    return found
+
+
+def test_every_module_has_a_layer():
+    unplaced = sorted(m for m in module_files() if layer_of(m) is None)
+    assert not unplaced, f"modules in no layer of LAYERS (add them to one): {unplaced}"
+
+
+def test_no_layer_imports_upward():
+    found = []
+    for module, imported in sorted(import_graph().items()):
+        for name in sorted(imported):
+            if layer_of(name) > layer_of(module):
+                found.append(
+                    f"{module} ({LAYERS[layer_of(module)][0]}) imports {name} "
+                    f"({LAYERS[layer_of(name)][0]})"
+                )
+    assert not found, "imports upward across the layers:\n" + "\n".join(found)
+
+
+def test_layer_check_sees_an_upward_import(tmp_path):
+    """The check is no empty one: a pipeline module importing a stage would be flagged."""
+    bad = tmp_path / "bad.py"
+    bad.write_text("def f():\n    from dexflow.stages.refine import STAGE\n    return STAGE\n")
+    imported = imports_of_file(bad, "dexflow.pipeline.bad")
+    assert "dexflow.stages.refine" in imported
+    assert layer_of("dexflow.stages.refine") > layer_of("dexflow.pipeline.bad")
+    assert layer_of("dexflow.tools.cli") == len(LAYERS) - 1
+    assert layer_of("dexflow") == 0 and layer_of("dexflow.hands.robot") == 1

@@ -264,13 +264,13 @@ def test_sequence_names_may_hold_dots(tmp_path):
 
 def test_bench_runs_every_dvc_stage_in_dvc_order(stages, tmp_path):
     """`dexflow bench pipeline|real` time the pipeline that `dvc repro` runs: the same stages
-    (``foreach`` items expanded), in the order dexflow.sweep runs them (dvc.yaml's, a stage
+    (``foreach`` items expanded), in the order dexflow.tools.sweep runs them (dvc.yaml's, a stage
     after those whose outputs it reads); only the report is left out."""
     from dvc.utils.serialize import load_yaml
 
-    from dexflow.bench import _pipeline_stages
     from dexflow.config import load_params
-    from dexflow.sweep import load_stages
+    from dexflow.pipeline.registry import load_stages
+    from dexflow.tools.bench import _pipeline_stages
 
     params = load_params(Path(__file__).parents[1] / "params.yaml")
     names = [name for name, _ in _pipeline_stages(params, Layout.of("data", root=tmp_path))]

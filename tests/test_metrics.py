@@ -20,10 +20,10 @@ from dexflow.measures import (
     state_flicker,
     surface_distances,
 )
-from dexflow.metrics import SelfCollision, chamfer_per_frame, trajectory_metrics
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import MetricsParams
-from dexflow.report import (
+from dexflow.stages.metrics import SelfCollision, chamfer_per_frame, trajectory_metrics
+from dexflow.stages.report import (
     Experiment,
     collect_dvc,
     collect_multirun,
@@ -400,7 +400,7 @@ def test_aggregate_velocity_kl_pools_the_sequences_with_the_configured_bins():
     (it once ignored kl_bins and used the default 30)."""
     from dexflow.io.artifacts import MetricFrames
     from dexflow.measures import velocity_kl
-    from dexflow.metrics import METHODS, _aggregate
+    from dexflow.stages.metrics import METHODS, _aggregate
 
     rng = np.random.default_rng(0)
     ok = {}

@@ -12,17 +12,17 @@ import pytest
 import trimesh
 
 from dexflow.errors import HandConfigError
-from dexflow.grasp_protocol import (
+from dexflow.hands import load_hand
+from dexflow.objects.convex import write_convex_obj
+from dexflow.params import PerturbationParams, SimulateParams
+from dexflow.sim.mujoco_world import MujocoGraspWorld, hand_name
+from dexflow.sim.protocol import (
     Perturbation,
     contact_imbalance,
     damped_step,
     imbalance,
     perturbations,
 )
-from dexflow.hands import load_hand
-from dexflow.mujoco_world import MujocoGraspWorld, hand_name
-from dexflow.objects.convex import write_convex_obj
-from dexflow.params import PerturbationParams, SimulateParams
 
 from .test_hands import _gripper
 from .test_simulate import _closed  # the same closing, through this world's gap
@@ -361,7 +361,7 @@ def test_mujoco_warnings_go_to_the_log_not_to_a_file_in_the_working_directory(
     )
     data = mujoco.MjData(model)
     data.qvel[:] = np.inf
-    with caplog.at_level("WARNING", logger="dexflow.mujoco_world"):
+    with caplog.at_level("WARNING", logger="dexflow.sim.mujoco_world"):
         mujoco.mj_step(model, data)
     assert list(tmp_path.iterdir()) == []
     assert "MuJoCo: Nan, Inf or huge value in QVEL" in caplog.text

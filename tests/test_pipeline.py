@@ -51,7 +51,7 @@ def project(tmp_path_factory) -> Path:
     demo.write_text(text)
     simulate = dst / "conf" / "simulate" / "default.yaml"
     simulate.write_text(simulate.read_text().replace("max_frames: 0", "max_frames: 3"))
-    _run([sys.executable, "-m", "dexflow.cli", "params"], dst)
+    _run([sys.executable, "-m", "dexflow.tools.cli", "params"], dst)
     _run(["git", "init", "-q", "-b", "main"], dst)
     _run(["git", "config", "user.email", "test@dexflow.invalid"], dst)
     _run(["git", "config", "user.name", "dexflow test"], dst)
@@ -85,7 +85,8 @@ def test_repro_then_noop_then_only_the_changed_stage(project):
     assert _ran(_run(["dvc", "repro"], project)) == ["hand"]
 
     _run(
-        [sys.executable, "-m", "dexflow.cli", "params", "scale_align.sdf_spacing_m=0.003"], project
+        [sys.executable, "-m", "dexflow.tools.cli", "params", "scale_align.sdf_spacing_m=0.003"],
+        project,
     )
     changed = _run(["dvc", "repro"], project)
     assert "Running stage 'scale_align'" in changed
@@ -93,7 +94,7 @@ def test_repro_then_noop_then_only_the_changed_stage(project):
 
     # Your own data (here: the demo's files as if they were yours): no demo stage to run.
     _run(
-        [sys.executable, "-m", "dexflow.cli", "params", "data=custom", "data.root=data/demo"],
+        [sys.executable, "-m", "dexflow.tools.cli", "params", "data=custom", "data.root=data/demo"],
         project,
     )
     custom = _run(["dvc", "repro"], project)

@@ -1,4 +1,4 @@
-"""Provenance (dexflow.provenance): the facts of the commit and the machine, the record a stage
+"""Provenance (dexflow.pipeline.provenance): the facts of the commit and the machine, the record a stage
 run leaves in reports/timing, and tracing a stage's metrics back to the machine that made them."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from dexflow import provenance
 from dexflow.config import load_params
 from dexflow.io.layout import Layout
-from dexflow.runner import StageSpec, run_stage
+from dexflow.pipeline import provenance
+from dexflow.pipeline.runner import StageSpec, run_stage
 
 ROOT = Path(__file__).resolve().parents[1]
 

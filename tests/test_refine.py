@@ -14,13 +14,13 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from dexflow.contact import _contact_map, finger_distances
 from dexflow.errors import ArtifactError
 from dexflow.hands import load_hand
 from dexflow.human.keypoints import FINGERTIPS
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import RefineParams
-from dexflow.refine import (
+from dexflow.stages.contact import _contact_map, finger_distances
+from dexflow.stages.refine import (
     TorchSDF,
     _BandedTransposedSolve,
     _second_difference_gram,
@@ -390,7 +390,7 @@ def test_release_preconditioner_makes_lbfgs_converge(allegro, monkeypatch):
         factors[:, 0] = 1.0
         return factors
 
-    monkeypatch.setattr("dexflow.refine.temporal_preconditioner", identity)
+    monkeypatch.setattr("dexflow.stages.refine.temporal_preconditioner", identity)
     assert lowest(60, 60) > 2 * optimum
 
 
@@ -469,7 +469,7 @@ def test_release_reach_leaves_out_only_points_that_add_nothing(allegro, monkeypa
 
 
 def test_the_first_release_runs_its_own_iterations_and_the_last_its_rounds(allegro, monkeypatch):
-    from dexflow import refine
+    from dexflow.stages import refine
 
     calls = []
 
@@ -494,7 +494,7 @@ def test_windows_cover_every_frame_and_cross_fade_linearly(allegro, monkeypatch)
     evenly spaced ([0, 9), [5, 14), [9, 18), [14, 23)); each gets its own rows of the contact
     map, counted from its first frame, and its frames' fingertip targets; the shared frames ramp
     linearly from one window's result to the next."""
-    from dexflow import refine
+    from dexflow.stages import refine
 
     seen, frames_of_targets = [], []
 
@@ -527,7 +527,7 @@ def test_windows_cover_every_frame_and_cross_fade_linearly(allegro, monkeypatch)
 @pytest.mark.parametrize(("n", "window", "overlap"), [(401, 400, 40), (1000, 400, 40),
                                                       (23, 10, 4), (57, 12, 6), (30, 16, 8)])  # fmt: skip
 def test_windows_are_few_equal_and_overlap_enough(n, window, overlap):
-    from dexflow.refine import _windows
+    from dexflow.stages.refine import _windows
 
     spans = _windows(n, window, overlap)
     assert spans[0][0] == 0 and spans[-1][1] == n
@@ -622,7 +622,7 @@ def test_grip_presses_the_contact_fingers_in_from_the_given_frame_on(allegro):
 
 def test_refine_reads_where_replay_lost_the_object_and_says_when_it_cannot(tmp_path):
     from dexflow.io.layout import Layout
-    from dexflow.refine import _lost_frames
+    from dexflow.stages.refine import _lost_frames
 
     layout = Layout.of(tmp_path / "data", root=tmp_path)
     with pytest.raises(ArtifactError, match=r"grip_m > 0 needs stage replay@retarget"):

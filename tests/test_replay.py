@@ -16,11 +16,10 @@ from dexflow.human.model import forward_keypoints
 from dexflow.io.sequence import Sequence
 from dexflow.objects.convex import write_convex_obj
 from dexflow.params import ReplayParams
-from dexflow.replay import (
-    ReplayWorld,
+from dexflow.sim.replay_world import ReplayWorld, replay_errors
+from dexflow.stages.replay import (
     aggregate,
     grasp_window,
-    replay_errors,
     replay_sequence,
     replay_window,
     sequence_result,
@@ -210,7 +209,7 @@ def test_report_section_tabulates_each_method_and_plots_the_error(tmp_path):
     object error over time drawn from the sequences that were replayed (not the others)."""
     from dexflow.io.artifacts import ReplayResult, write_replay
     from dexflow.io.atomic import save_json
-    from dexflow.report import _replay_section
+    from dexflow.stages.report import _replay_section
 
     root = tmp_path / "replay" / "refine"
     (root / "sequences").mkdir(parents=True)

@@ -10,10 +10,16 @@ from pathlib import Path
 
 import pytest
 
-from dexflow import provenance
-from dexflow.cli import main
-from dexflow.report import Experiment, collect_dvc, collect_multirun, write_ablation, write_summary
+from dexflow.pipeline import provenance
+from dexflow.stages.report import (
+    Experiment,
+    collect_dvc,
+    collect_multirun,
+    write_ablation,
+    write_summary,
+)
 from dexflow.stats import mean_interval, rate_interval
+from dexflow.tools.cli import main
 from tests.test_metrics import _metrics_dir, _section
 
 OTHER = "0123456789ab"  # the machine id of a machine that is not this one
@@ -250,7 +256,7 @@ def test_report_ablation_command_refuses_a_baseline_of_another_machine(tmp_path)
 
 
 def test_benchmark_reports_say_where_they_were_measured(tmp_path, capsys):
-    from dexflow.bench import _publish, _real_table
+    from dexflow.tools.bench import _publish, _real_table
 
     result = {"metrics": {}, "seconds": {"retarget@dexflow": 2.0}, "sequences": 4,
               "frames": 120, "retarget_s_per_sequence": 1.0}  # fmt: skip

@@ -13,7 +13,7 @@ from dexflow.hands.jacobian import KeypointJacobian
 from dexflow.hands.robot import base_transform
 from dexflow.human.cleaning import detect_bad_frames
 from dexflow.io.sequence import Sequence
-from dexflow.retarget import (
+from dexflow.stages.retarget import (
     RetargetParams,
     _initial_base,
     _temporal_blocks,

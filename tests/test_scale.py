@@ -16,17 +16,17 @@ import numpy as np
 import pytest
 import trimesh
 
-from dexflow.align import run_scale_align
-from dexflow.contact import run_contact
 from dexflow.errors import ConfigError
-from dexflow.hand_stage import run_hand
 from dexflow.hands import load_hand
 from dexflow.hands.spec import load_hand_spec
 from dexflow.io.layout import Layout
 from dexflow.io.sequence import save_sequence
-from dexflow.parallel import RAY_MISSING, map_items
 from dexflow.params import PipelineParams, RunParams
-from dexflow.resume import DONE_DIR, STAGE_FILE, StageOutput
+from dexflow.pipeline.parallel import RAY_MISSING, map_items
+from dexflow.pipeline.resume import DONE_DIR, STAGE_FILE, StageOutput
+from dexflow.stages.contact import run_contact
+from dexflow.stages.hand import run_hand
+from dexflow.stages.scale_align import run_scale_align
 
 from .conftest import make_sequence
 
@@ -117,9 +117,7 @@ def test_ray_is_optional_and_named_when_missing(monkeypatch):
     with pytest.raises(ImportError, match=r"pip install -e '\.\[ray\]'"):
         map_items(_halve, range(3), RunParams("ray", 2), progress=False)
     # Nothing imports Ray unless the ray backend is chosen.
-    code = (
-        "import dexflow.parallel, dexflow.resume, dexflow.align, sys; print('ray' in sys.modules)"
-    )
+    code = "import dexflow.pipeline.parallel, dexflow.pipeline.resume, dexflow.stages.scale_align, sys; print('ray' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.stdout.strip() == "False", out.stderr
 
@@ -311,7 +309,7 @@ def test_contact_backends_give_the_same_outputs_and_report_the_bad_sequence(
 _KILLABLE = """
 import sys
 from pathlib import Path
-from dexflow.align import run_scale_align
+from dexflow.stages.scale_align import run_scale_align
 from dexflow.io.layout import Layout
 from tests.test_scale import _params
 run_scale_align(_params(sdf_spacing_m={spacing}), Layout.of(Path(sys.argv[1]), Path(sys.argv[2])))
@@ -384,8 +382,8 @@ def test_a_killed_stage_resumes_without_recomputing_and_matches_an_uninterrupted
 def test_contact_in_chunks_of_frames_gives_the_same_outputs(contact_inputs, contact_reference):
     """Contact works through a sequence in chunks of frames (memory bounded by a chunk, for
     long captures): chunks of 3 frames give the same files, byte for byte, as one chunk."""
-    from dexflow import contact
     from dexflow.measures import frame_chunks
+    from dexflow.stages import contact
 
     layout = _contact_project(contact_inputs, "contact_chunked")
     original = contact.frame_chunks

@@ -14,15 +14,9 @@ import trimesh
 from dexflow.hands import load_hand
 from dexflow.objects.convex import write_convex_obj
 from dexflow.objects.sdf import SignedDistanceGrid
-from dexflow.params import PerturbationParams
-from dexflow.simulate import (
-    GraspWorld,
-    SimulateParams,
-    _mass_frame,
-    hand_urdf,
-    object_parts,
-    simulate_sequence,
-)
+from dexflow.params import PerturbationParams, SimulateParams
+from dexflow.sim.pybullet_world import PybulletGraspWorld, _mass_frame, hand_urdf, object_parts
+from dexflow.stages.simulate import simulate_sequence
 
 from .test_hands import _gripper
 
@@ -39,7 +33,7 @@ def scene(tmp_path_factory):
     folder = tmp_path_factory.mktemp("simulate")
     hand = load_hand(_gripper(folder))
     write_convex_obj(folder / "box.obj", [trimesh.creation.box(BOX)])
-    world = GraspWorld(hand, hand_urdf(hand), SINGLE)
+    world = PybulletGraspWorld(hand, hand_urdf(hand), SINGLE)
     world.set_object(folder / "box.obj")
     pose = np.eye(4)
     pose[2, 3] = 0.01 + BOX[2] / 2  # palm top at z = 1 cm
@@ -107,7 +101,7 @@ def test_object_away_from_the_hand_falls(scene):
 def test_gravity_really_pulls_on_the_object(scene):
     """With the force off, the opened hand 'holds' the box resting on its palm; with it on, not."""
     hand, _, pose, folder = scene
-    weightless = GraspWorld(hand, hand_urdf(hand), SimulateParams(gravity=1e-9))
+    weightless = PybulletGraspWorld(hand, hand_urdf(hand), SimulateParams(gravity=1e-9))
     weightless.set_object(folder / "box.obj")
     result = weightless.test_frame(_opened(hand), pose)
     assert result["held"].all() and np.all(result["displacement_m"] < 1e-3)
@@ -116,7 +110,7 @@ def test_gravity_really_pulls_on_the_object(scene):
 def test_results_are_identical_across_runs_and_worlds(scene):
     hand, world, pose, folder = scene
     q = _closed(hand, world, pose)
-    other = GraspWorld(hand, hand_urdf(hand), SimulateParams())
+    other = PybulletGraspWorld(hand, hand_urdf(hand), SimulateParams())
     other.set_object(folder / "box.obj")
     first = world.test_frame(q, pose)
     world.test_frame(_opened(hand), pose)  # history must not matter
@@ -140,7 +134,7 @@ def test_penetrating_start_does_not_count_and_sequence_logic(scene, box_sdf):
     p = world.params
     assert arrays["frame"].tolist() == [2]  # stride 5 from frame 2
     params = dataclasses.replace(p, stride=1)
-    world_1 = GraspWorld(hand, hand_urdf(hand), params)
+    world_1 = PybulletGraspWorld(hand, hand_urdf(hand), params)
     world_1.set_object(folder / "box.obj")
     opposed = {  # stage contact's map: two fingers on opposite faces at frame 3 only
         "map_frame": np.array([3, 3]),
@@ -177,7 +171,7 @@ def test_frames_over_the_tolerance_are_skipped_by_default_with_the_same_success(
     for test_all in (True, False):
         params = dataclasses.replace(world.params, stride=1, test_over_tolerance=test_all)
         assert SimulateParams().test_over_tolerance is False  # the default skips
-        skipping = GraspWorld(hand, hand_urdf(hand), params)
+        skipping = PybulletGraspWorld(hand, hand_urdf(hand), params)
         skipping.set_object(folder / "box.obj")
         results[test_all] = simulate_sequence(skipping, q, poses, 2, box_sdf)
     (tested, every), (arrays, result) = results[True], results[False]
@@ -224,7 +218,7 @@ def test_links_without_inertial_get_the_default_mass(tmp_path):
     params = SimulateParams(massless_link_mass_kg=0.003, massless_link_inertia_kgm2=2e-7)
     path = hand_urdf(hand, params)
     assert path != urdf and path.parent != urdf.parent
-    world, raw = GraspWorld(hand, path, params), GraspWorld(hand, urdf, params)
+    world, raw = PybulletGraspWorld(hand, path, params), PybulletGraspWorld(hand, urdf, params)
     for link in ("base", "f0_tip", "f1_tip", "f2_tip"):
         info = world.client.getDynamicsInfo(world.body, world.link_index[link])
         assert info[0] == pytest.approx(0.003)
@@ -253,7 +247,7 @@ def test_hand_with_tiny_inertias_holds_its_pose_without_an_object(tmp_path, name
     else:
         hand = load_hand("allegro")
     params = SimulateParams()
-    world = GraspWorld(hand, hand_urdf(hand, params), params)
+    world = PybulletGraspWorld(hand, hand_urdf(hand, params), params)
     rng = np.random.default_rng(0)
     lo, hi = hand.lower.numpy()[6:], hand.upper.numpy()[6:]
     q = hand.zero()[0].numpy().copy()
@@ -273,14 +267,14 @@ def test_penetration_rule_holds_on_the_mesh_and_on_the_simulated_parts(scene, bo
     hand, world, pose, _ = scene
     q = _closed(hand, world, pose)
     write_convex_obj(tmp_path / "bulging.obj", [trimesh.creation.box(np.array(BOX) + 0.006)])
-    bulging = GraspWorld(hand, hand_urdf(hand), SINGLE)
+    bulging = PybulletGraspWorld(hand, hand_urdf(hand), SINGLE)
     bulging.set_object(tmp_path / "bulging.obj")
     arrays, result = simulate_sequence(bulging, q[None], pose[None], 0, box_sdf)
     assert arrays["pybullet.parts_penetration_m"][0] > 0.0025
     assert arrays["penetration_m"][0] < 1e-3
     assert result["over_tolerance"] == 0.0 and result["over_tolerance_parts"] == 1
     assert result["success_contact_raw"] and not result["success_contact"]
-    exact = GraspWorld(hand, hand_urdf(hand), SINGLE)
+    exact = PybulletGraspWorld(hand, hand_urdf(hand), SINGLE)
     write_convex_obj(tmp_path / "exact.obj", [trimesh.creation.box(BOX)])
     exact.set_object(tmp_path / "exact.obj")
     _, counted = simulate_sequence(exact, q[None], pose[None], 0, box_sdf)
@@ -291,11 +285,11 @@ def test_both_engines_test_the_same_frames_and_their_agreement_is_counted(scene,
     """pybullet and MuJoCo on one trajectory: the same frames, one row set per engine, the first
     engine's DexGraspBench success at the top level, and per-frame agreement by the paper's
     criterion."""
-    from dexflow.mujoco_world import MujocoGraspWorld
+    from dexflow.sim.mujoco_world import MujocoGraspWorld
 
     hand, world, pose, folder = scene
     params = dataclasses.replace(world.params, stride=1, early_stop=False)
-    pybullet = GraspWorld(hand, hand_urdf(hand), params)
+    pybullet = PybulletGraspWorld(hand, hand_urdf(hand), params)
     mujoco = MujocoGraspWorld(hand, params)
     for w in (pybullet, mujoco):
         w.set_object(folder / "box.obj")
@@ -319,12 +313,12 @@ def test_the_headline_ssr_of_two_engines_needs_a_frame_held_in_both(scene, box_s
     """MuJoCo holds the wrapped box; pybullet, pulling it with fifty times its weight, drops it:
     each engine keeps its own result, the headline (the conservative SSR) fails, and the two
     engines disagree on every frame."""
-    from dexflow.mujoco_world import MujocoGraspWorld
+    from dexflow.sim.mujoco_world import MujocoGraspWorld
 
     hand, world, pose, folder = scene
     params = dataclasses.replace(world.params, stride=1, early_stop=False)
     mujoco = MujocoGraspWorld(hand, params)
-    pybullet = GraspWorld(hand, hand_urdf(hand), dataclasses.replace(params, gravity=500.0))
+    pybullet = PybulletGraspWorld(hand, hand_urdf(hand), dataclasses.replace(params, gravity=500.0))
     for w in (pybullet, mujoco):
         w.set_object(folder / "box.obj")
     closed = _closed(hand, world, pose)
@@ -348,14 +342,14 @@ def test_perturbed_trials_make_success_robust_and_zero_trials_are_the_single_tri
     closed = _closed(hand, world, pose)
     no_trials = dataclasses.replace(world.params.perturbations, count=0)
     base = dataclasses.replace(world.params, stride=1, early_stop=False, perturbations=no_trials)
-    single = GraspWorld(hand, hand_urdf(hand), base)
+    single = PybulletGraspWorld(hand, hand_urdf(hand), base)
     single.set_object(folder / "box.obj")
     arrays, result = simulate_sequence(single, closed[None], pose[None], 0, box_sdf)
     assert arrays["pybullet.bench"].tolist() == arrays["pybullet.bench_single"].tolist() == [True]
     assert result["flipped_frames"] == 0 and result["success_bench"]
 
     far = dataclasses.replace(base.perturbations, count=2, position_m=0.05, rotation_deg=0.0)
-    shaken = GraspWorld(hand, hand_urdf(hand), dataclasses.replace(base, perturbations=far))
+    shaken = PybulletGraspWorld(hand, hand_urdf(hand), dataclasses.replace(base, perturbations=far))
     shaken.set_object(folder / "box.obj")
     arrays, result = simulate_sequence(shaken, closed[None], pose[None], 0, box_sdf)
     assert arrays["pybullet.bench_single"].tolist() == [True]  # the nominal trial still holds
@@ -366,7 +360,7 @@ def test_perturbed_trials_make_success_robust_and_zero_trials_are_the_single_tri
 def test_penetrating_start_does_not_count_in_mujoco_either(scene, box_sdf):
     """The penetration rule is the stage's, whatever the engine: a box sunk 4 mm into the palm
     is not a counted success in MuJoCo; the clean frame after it is."""
-    from dexflow.mujoco_world import MujocoGraspWorld
+    from dexflow.sim.mujoco_world import MujocoGraspWorld
 
     hand, world, pose, folder = scene
     closed = _closed(hand, world, pose)
@@ -386,7 +380,7 @@ def test_summary_counts_frames_lost_while_closing_and_the_mean_imbalance():
     """Per engine: frames whose object passed either DexGraspBench threshold while the fingers
     closed (None where the engine holds the object then: NaN rows), and the mean imbalance of
     the frames with a contact, over all sequences' frames."""
-    from dexflow.simulate import _engine_result, _engine_summary
+    from dexflow.stages.simulate import _engine_result, _engine_summary
 
     p = SimulateParams()
 

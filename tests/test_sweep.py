@@ -1,4 +1,4 @@
-"""Hydra multirun sweeps without DVC experiments (dexflow.sweep): dvc.yaml reading, the reuse
+"""Hydra multirun sweeps without DVC experiments (dexflow.tools.sweep): dvc.yaml reading, the reuse
 rule on a toy pipeline, and the real pipeline fanned out by the joblib launcher (slow)."""
 
 from __future__ import annotations
@@ -15,11 +15,12 @@ from dvc.utils.serialize import load_yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from dexflow import provenance
 from dexflow.config import compose_params
 from dexflow.errors import ConfigError
-from dexflow.report import collect_multirun
-from dexflow.sweep import load_stages, main, run_job, upstream_stages
+from dexflow.pipeline import provenance
+from dexflow.pipeline.registry import load_stages, upstream_stages
+from dexflow.stages.report import collect_multirun
+from dexflow.tools.sweep import main, run_job
 
 ROOT = Path(__file__).resolve().parents[1]
 UPSTREAM_OF_CONTACT = [
@@ -325,7 +326,7 @@ def project(tmp_path_factory) -> Path:
     _edit(demo, "max_frames: 150", "max_frames: 40")
     _edit(dst / "conf" / "simulate" / "default.yaml", "max_frames: 0", "max_frames: 3")
     _edit(dst / "conf" / "config.yaml", "- run: local", "- run: sequential")
-    _run([sys.executable, "-m", "dexflow.cli", "params"], dst, dst)
+    _run([sys.executable, "-m", "dexflow.tools.cli", "params"], dst, dst)
     for cmd in (["git", "init", "-q", "-b", "main"], ["git", "add", "-A"],
                 ["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "init"],
                 ["dvc", "repro"]):  # fmt: skip
@@ -337,7 +338,7 @@ def project(tmp_path_factory) -> Path:
 def test_joblib_sweep_reuses_upstream_and_gives_each_job_its_metrics(project, tmp_path):
     project_contact = (project / "reports/metrics/contact.json").read_bytes()
     sweep = tmp_path / "multirun"
-    _run([sys.executable, "-m", "dexflow.sweep", "-m", "hydra/launcher=joblib",
+    _run([sys.executable, "-m", "dexflow.tools.sweep", "-m", "hydra/launcher=joblib",
           "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}",
           "contact.dis_min_m=0.008,0.012"], project, project)  # fmt: skip
 
@@ -367,7 +368,7 @@ def test_joblib_sweep_reuses_upstream_and_gives_each_job_its_metrics(project, tm
 
 @pytest.mark.slow
 def test_failed_jobs_are_recorded_while_the_others_complete(project):
-    _run([sys.executable, "-m", "dexflow.sweep", "-m", "simulate.stride=0,5",
+    _run([sys.executable, "-m", "dexflow.tools.sweep", "-m", "simulate.stride=0,5",
           "data.root=data/demo,data/missing"], project, project)  # fmt: skip
 
     (sweep,) = (project / "multirun").glob("*/*")  # the default: multirun/<date>/<time>

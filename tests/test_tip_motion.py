@@ -1,4 +1,4 @@
-"""Tests for dexflow.tip_motion: a fingertip change split along and across the object normal."""
+"""Tests for dexflow.tools.tip_motion: a fingertip change split along and across the object normal."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import trimesh
 from dexflow.hands import load_hand
 from dexflow.human.keypoints import FINGERTIPS
 from dexflow.objects.sdf import SignedDistanceGrid
-from dexflow.tip_motion import fingertip_motion, summarize_motion
+from dexflow.tools.tip_motion import fingertip_motion, summarize_motion
 
 
 @pytest.fixture(scope="module")

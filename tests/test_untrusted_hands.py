@@ -14,12 +14,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from dexflow.align import run_scale_align
-from dexflow.cli import main
 from dexflow.config import compose_params, load_params
 from dexflow.data.ycb_standins import STANDINS, build_standin
 from dexflow.errors import ConfigError, HandConfigError, MeshError
-from dexflow.hand_stage import run_hand
 from dexflow.hands.files import copy_model, model_files, model_root, resolve_model_path
 from dexflow.hands.model import load_kinematic_model
 from dexflow.hands.spec import MAX_YAML_ALIASES, load_hand_spec
@@ -28,6 +25,9 @@ from dexflow.io.sequence import save_sequence
 from dexflow.objects.mesh import MESH_WARNING, load_mesh, write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import PipelineParams
+from dexflow.stages.hand import run_hand
+from dexflow.stages.scale_align import run_scale_align
+from dexflow.tools.cli import main
 from tests.conftest import make_sequence
 from tests.test_bad_input import _params as _small_params
 

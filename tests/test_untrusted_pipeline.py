@@ -15,11 +15,11 @@ import numpy as np
 import psutil
 import pytest
 
-from dexflow.cli import main as cli_main
 from dexflow.io.layout import StageDir, project_root, stray_files
 from dexflow.io.sequence import save_sequence
-from dexflow.resume import StageOutput
-from dexflow.runner import StageBusyError, stage_lock
+from dexflow.pipeline.resume import StageOutput
+from dexflow.pipeline.runner import StageBusyError, stage_lock
+from dexflow.tools.cli import main as cli_main
 from tests.conftest import make_sequence
 
 
@@ -74,7 +74,7 @@ def test_a_second_run_of_a_stage_stops_while_the_first_holds_it(tmp_path):
     holder = subprocess.Popen(
         [sys.executable, "-c",
          "import sys, time\n"
-         "from dexflow.runner import stage_lock\n"
+         "from dexflow.pipeline.runner import stage_lock\n"
          f"with stage_lock({str(tmp_path)!r}, 'refine'):\n"
          "    print('held', flush=True); time.sleep(60)\n"],
         stdout=subprocess.PIPE, text=True,
@@ -99,7 +99,7 @@ def test_a_stage_under_sh_c_stops_when_its_launcher_is_killed(tmp_path):
     the parent-death signal alone never reaches the stage: the stage watches the launcher."""
     marker = tmp_path / "stopped"
     stage = f"""import time, pathlib
-from dexflow.runner import _stops_with_parent
+from dexflow.pipeline.runner import _stops_with_parent
 marker = pathlib.Path({str(marker)!r})
 try:
     with _stops_with_parent():
@@ -140,7 +140,7 @@ def test_a_killed_dvc_repro_leaves_no_stage_or_worker_running(tmp_path):
     overrides = ["demo.objects=[002_master_chef_can,006_mustard_bottle,021_bleach_cleanser]",
                  "demo.sequences_per_object=1", "run.n_jobs=2"]  # fmt: skip
     env = {**os.environ, "DVC_NO_ANALYTICS": "1"}
-    subprocess.run([sys.executable, "-m", "dexflow.cli", "params", *overrides], cwd=project,
+    subprocess.run([sys.executable, "-m", "dexflow.tools.cli", "params", *overrides], cwd=project,
                    check=True, env=env, capture_output=True)  # fmt: skip
     for cmd in (
         ["git", "init", "-q"],

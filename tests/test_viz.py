@@ -11,12 +11,12 @@ import pytest
 import rerun as rr
 import trimesh
 
-from dexflow import cli, viz
 from dexflow.errors import ArtifactError
 from dexflow.hands import load_hand
 from dexflow.io.artifacts import ContactResult, Trajectory, write_contact, write_trajectory
 from dexflow.io.layout import Layout
 from dexflow.io.sequence import save_sequence
+from dexflow.tools import cli, viz
 
 from .conftest import make_sequence
 
@@ -247,7 +247,7 @@ def test_missing_sequence_names_scale_align(tmp_path, hand):
 
 def test_missing_contact_warns_and_records_without_colours(tmp_path, hand, caplog):
     root = _project(tmp_path, hand, contact=False)
-    with caplog.at_level(logging.WARNING, logger="dexflow.viz"):
+    with caplog.at_level(logging.WARNING, logger="dexflow.tools.viz"):
         out = viz.record_sequence(NAME, project_root=root, hand=hand)
     assert any("contact" in r.getMessage() and r.levelno == logging.WARNING for r in caplog.records)
     chunks = _read(out)

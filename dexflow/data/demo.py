@@ -29,7 +29,6 @@ files.
 from __future__ import annotations
 
 import logging
-import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -42,12 +41,11 @@ from dexflow.geometry import world_to_object
 from dexflow.human.keypoints import FINGER_KEYPOINTS, FINGERS
 from dexflow.human.model import HandShape, finger_capsules, forward_keypoints
 from dexflow.io.atomic import save_json
-from dexflow.io.layout import Layout, StageDir
+from dexflow.io.layout import StageDir
 from dexflow.io.sequence import Sequence, save_sequence
 from dexflow.objects.mesh import write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
-from dexflow.params import DemoConfig, PipelineParams
-from dexflow.runner import StageSpec
+from dexflow.params import DemoConfig
 
 if TYPE_CHECKING:
     from dexflow.params import RunParams
@@ -431,7 +429,7 @@ def generate_demo(cfg: DemoConfig, out_dir: str | Path, run: int | RunParams = 1
     Returns:
         The manifest, also written to ``out_dir/index.json``.
     """
-    from dexflow.parallel import map_items, raise_first_error
+    from dexflow.pipeline.parallel import map_items, raise_first_error
 
     names = list(cfg.objects) or sorted(STANDINS)
     unknown = sorted(set(names) - set(STANDINS))
@@ -462,47 +460,4 @@ FIGURE_OBJECTS = (
     "005_tomato_soup_can",
     "051_large_clamp",
     "006_mustard_bottle",
-)
-
-
-def run_demo(params: PipelineParams, layout: Layout) -> dict:
-    """Stage runner: generate the demo into ``layout.data`` (from scratch) and draw
-    ``reports/figures/demo.png``.
-
-    Returns:
-        The stage's metrics: ``objects``, ``sequences``, ``frames`` and the frames of each kind of
-        annotation fault (``dropout_frames``, ``tracking_lost_frames``, ``template_frames``).
-    """
-    from dexflow.plots import plot_sequence_frames
-
-    out = layout.data.root
-    if out.exists():
-        shutil.rmtree(out)
-    manifest = generate_demo(params.demo, out, params.run)
-    entries = manifest["sequences"]
-    names = [e["name"] for e in entries]
-    shown = [n for n in names if n.split("__")[0] in FIGURE_OBJECTS] or names
-    plot_sequence_frames(out, shown[:: max(1, len(shown) // 6)][:6], layout.figures / "demo.png")
-    return {
-        "objects": len(manifest["objects"]),
-        "sequences": manifest["num_sequences"],
-        "frames": manifest["num_frames"],
-        "dropout_frames": sum(e["dropout_frames"] for e in entries),
-        "tracking_lost_frames": sum(e["tracking_lost_frames"] for e in entries),
-        "template_frames": sum(e["template_frames"] for e in entries),
-    }
-
-
-STAGE = StageSpec(
-    name="demo",
-    run=run_demo,
-    metric_keys=(
-        "objects",
-        "sequences",
-        "frames",
-        "dropout_frames",
-        "tracking_lost_frames",
-        "template_frames",
-    ),
-    describe=lambda s: f"{s['sequences']} sequences, {s['frames']} frames, {s['objects']} objects",
 )

@@ -3,7 +3,7 @@
 A hand yaml names one model file (``model``: a path, or ``pkg://<package>/<path>`` inside an
 installed package), but a URDF also reads its meshes and an MJCF its ``<include>`` files, meshes,
 textures, height fields and skins. :func:`model_files` lists them all, so that the pipeline can
-copy them into a directory DVC tracks (stage ``hand``, :mod:`dexflow.hand_stage`) and no stage
+copy them into a directory DVC tracks (stage ``hand``, :mod:`dexflow.stages.hand`) and no stage
 reads a file DVC does not see.
 
 A hand model is data someone else wrote, so every file it names must stay inside the folder it

@@ -23,7 +23,7 @@ returned as one line per link by :func:`physics_urdf` and :func:`mjcf_inertials`
   own folder.
 
 A URDF hand needing none of these is loaded as it is. Names cannot clash with a scene's: the
-MuJoCo scenes attach the hand under a prefix (:mod:`dexflow.mujoco_world`), pybullet keeps each
+MuJoCo scenes attach the hand under a prefix (:mod:`dexflow.sim.mujoco_world`), pybullet keeps each
 body apart.
 """
 

@@ -292,10 +292,10 @@ class SimulationResult:
     Attributes:
         rows: ``frame (N,)``, ``penetration_m (N,)`` (mesh depth, the penetration rule's),
             ``contact_imbalance (N,)`` (how one-sided stage contact's contacts are at the frame,
-            :func:`dexflow.grasp_protocol.contact_imbalance`), and
+            :func:`dexflow.sim.protocol.contact_imbalance`), and
             per engine ``<engine>.<key>``: ``parts_penetration_m (N,)`` (against the convex
             parts), ``pushed_links (N,)``, ``imbalance (N,)`` (how one-sided the pushes are,
-            :func:`dexflow.grasp_protocol.imbalance`), ``closing_displacement_m (N,)`` and
+            :func:`dexflow.sim.protocol.imbalance`), ``closing_displacement_m (N,)`` and
             ``closing_rotation_deg (N,)`` (the object's motion while the fingers closed, before
             any push; NaN where the engine's test holds it then), ``touching (N, F)``,
             ``held``/``displacement_m``/``rotation_deg``/``tested`` ``(N, 6)`` per push

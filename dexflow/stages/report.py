@@ -9,7 +9,7 @@
   parameter, best values in bold. Failed or incomplete experiments are listed, never dropped;
   runs of another machine than the one compared are listed, not compared.
 
-Both open with their provenance (:mod:`dexflow.provenance`): the commit and machine they were
+Both open with their provenance (:mod:`dexflow.pipeline.provenance`): the commit and machine they were
 written on, the data, and the machine(s) the numbers were made on.
 """
 
@@ -22,10 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dexflow import provenance, stats
+from dexflow import stats
 from dexflow.io.layout import Layout
 from dexflow.params import PipelineParams
-from dexflow.runner import StageSpec
+from dexflow.pipeline import provenance
+from dexflow.pipeline.runner import StageSpec
 
 __all__ = [
     "PAPER",
@@ -136,7 +137,7 @@ def write_summary(
 ) -> Path:
     """Write ``summary.md`` and its figures from the metrics stage's outputs.
 
-    The report opens with its provenance (:mod:`dexflow.provenance`): the commit and machine
+    The report opens with its provenance (:mod:`dexflow.pipeline.provenance`): the commit and machine
     it is written on, the data, and the machines and commits the stages behind its numbers ran
     on (they may have run earlier, elsewhere: DVC restores outputs from its cache), flagged
     when they differ. Rates and means over sequences are given with their 95 % intervals
@@ -226,7 +227,7 @@ def write_summary(
         "cancel, 1 when all press the same way; *contact imbalance* is the same measure of the "
         "contacts stage contact found at those frames (the fingers the grasp was retargeted and "
         "refined towards, where the human touched): near 1, those contacts are one-sided and "
-        "copying them cannot enclose the object (`dexflow/grasp_protocol.py`).",
+        "copying them cannot enclose the object (`dexflow/sim/protocol.py`).",
         "",
         *_replay_section(stage, replay_dirs or {}, figures_dir, rel),
         "## Motion quality (paper Table III layout)",
@@ -262,7 +263,7 @@ def _contact_rows(contact: dict, metrics: dict) -> list[str]:
     """Contact flicker the paper's way (a single threshold on the baseline retargeting against
     DexFlow's dual threshold and inference on its own), then what each part removes on the
     same trajectory, and precision/recall where the data has ground truth (stage contact's
-    ``contact.json``, definitions in :mod:`dexflow.contact`)."""
+    ``contact.json``, definitions in :mod:`dexflow.stages.contact`)."""
 
     def percent(key: str) -> str:
         value = contact.get(key)
@@ -316,7 +317,7 @@ def _replay_section(stage: dict, dirs: dict, figures_dir: Path, rel: Path) -> li
         "to the release (the recorded object leaves the recorded hand: `replay."
         "release_distance_m`) or else the last contact: base along q through force-limited "
         "servos, fingers by position control, the object free under gravity on a table "
-        "(`dexflow/replay.py`). Only the part where the human holds the object is scored. "
+        "(`dexflow/stages/replay.py`). Only the part where the human holds the object is scored. "
         "*Not scored*: sequences the replay cannot reproduce, left out of every rate and error "
         "(*no support*: the recorded object is not resting before the grasp; *free fall*: it "
         "falls freely while it would be scored; *no contact*). *SPIDER*: mean object error "
@@ -391,7 +392,7 @@ def _provenance_section(
     metrics: dict, table, data: str, metrics_dir: Path, timing_dir: str | Path | None
 ) -> list[str]:
     """Where the report was written (commit, machine), on which data, and where the stages
-    behind its numbers ran, flagged when they differ (:mod:`dexflow.provenance`)."""
+    behind its numbers ran, flagged when they differ (:mod:`dexflow.pipeline.provenance`)."""
     frames = metrics.get("num_frames")
     if frames is None and len(table) and "frames" in table.columns:
         frames = int(table[table["method"] == table["method"].iloc[0]]["frames"].sum())
@@ -805,7 +806,7 @@ def _figures(metrics: dict, table, plots_dir: Path, figures_dir: Path) -> list[t
 @dataclass
 class Experiment:
     """One run of the pipeline: its parameters (flat, dotted keys), metrics (flat) and, per
-    stage, who made its outputs (:func:`dexflow.provenance.made_by`: machine, commit; None
+    stage, who made its outputs (:func:`dexflow.pipeline.provenance.made_by`: machine, commit; None
     where not recorded)."""
 
     name: str
@@ -923,7 +924,7 @@ def collect_dvc(show: list | dict, timing_dir: str | Path | None = None) -> list
 def collect_multirun(root) -> list[Experiment]:
     """Experiments from a Hydra multirun directory (one job per subdirectory holding
     ``params.yaml``, ``reports/metrics/*.json``, ``reports/timing/*.json`` (where each stage
-    ran; :func:`dexflow.sweep.run_job` copies the records of the stages it reuses) and
+    ran; :func:`dexflow.tools.sweep.run_job` copies the records of the stages it reuses) and
     ``sweep_status.json``)."""
     import yaml
 
@@ -1020,7 +1021,7 @@ def write_ablation(
         out_md: The Markdown file.
         figures_dir: Where the PNGs go.
         metrics: Flat metric keys to show; default: the paper's metrics for every method.
-        machine: The machine id (:func:`dexflow.provenance.machine_id`) whose runs are
+        machine: The machine id (:func:`dexflow.pipeline.provenance.machine_id`) whose runs are
             compared; None: every complete run.
     """
     from dexflow.io.atomic import atomic_path

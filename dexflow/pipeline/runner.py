@@ -3,16 +3,16 @@
 A stage module declares a :class:`StageSpec` (its name, its runner, the summary keys that are
 its DVC metrics, a one-line description); its script in ``stages/`` is then just::
 
-    from dexflow.refine import STAGE
-    from dexflow.runner import stage_main
+    from dexflow.stages.refine import STAGE
+    from dexflow.pipeline.runner import stage_main
 
     sys.exit(stage_main(STAGE, sys.argv[1:]))
 
 :func:`stage_main` loads and validates ``params.yaml``, builds the project's
 :class:`~dexflow.io.layout.Layout`, calls the runner (which maps over the sequences with
-:class:`dexflow.resume.StageOutput`: resume, progress bar, one failed sequence never stops the
+:class:`dexflow.pipeline.resume.StageOutput`: resume, progress bar, one failed sequence never stops the
 rest), writes ``reports/metrics/<tag>.json`` (deterministic) and ``reports/timing/<tag>.json``
-(wall clock, and where the stage ran: commit, machine, data; :mod:`dexflow.provenance`), logs
+(wall clock, and where the stage ran: commit, machine, data; :mod:`dexflow.pipeline.provenance`), logs
 one line and every dropped sequence with its reason, and returns the exit code:
 
 - 0: the stage completed and at least one sequence went through (the others were dropped for
@@ -48,12 +48,12 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-from dexflow import provenance
 from dexflow.config import load_params
 from dexflow.errors import DexflowError, IncompleteStageError
 from dexflow.io.atomic import save_json
 from dexflow.io.layout import Layout
 from dexflow.params import PipelineParams
+from dexflow.pipeline import provenance
 
 __all__ = ["StageBusyError", "StageSpec", "run_stage", "stage_lock", "stage_main"]
 
@@ -121,7 +121,7 @@ def run_stage(spec: StageSpec, params: PipelineParams, layout: Layout, args=()) 
 
 def _record_timing(path: Path, summary: dict, params: PipelineParams, digest: str | None) -> None:
     """Write the stage's ``reports/timing`` record: its speeds and where it ran (commit,
-    machine, data; :func:`dexflow.provenance.stage_record`)."""
+    machine, data; :func:`dexflow.pipeline.provenance.stage_record`)."""
     try:
         previous = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):

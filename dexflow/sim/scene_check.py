@@ -5,10 +5,11 @@ cannot step fails there, once, with the link or joint named and the fix, instead
 simulate or replay after the kinematic stages ran. The scenes are the ones the stages build,
 with the same parameters:
 
-- **grasp test, MuJoCo** (:class:`dexflow.mujoco_world.MujocoGraspWorld`) and, when
-  ``simulate.engines`` selects it, **grasp test, pybullet** (:class:`dexflow.simulate.GraspWorld`
-  on :func:`dexflow.simulate.hand_urdf`): the six-direction test of one frame;
-- **replay** (:class:`dexflow.replay.ReplayWorld`): a short trajectory played with the object
+- **grasp test, MuJoCo** (:class:`dexflow.sim.mujoco_world.MujocoGraspWorld`) and, when
+  ``simulate.engines`` selects it, **grasp test, pybullet**
+  (:class:`dexflow.sim.pybullet_world.PybulletGraspWorld` on
+  :func:`dexflow.sim.pybullet_world.hand_urdf`): the six-direction test of one frame;
+- **replay** (:class:`dexflow.sim.replay_world.ReplayWorld`): a short trajectory played with the object
   free under gravity on its table.
 
 The frame: every joint at mid-range, the base at the origin, a 4 cm cube centred between the
@@ -32,11 +33,11 @@ import trimesh
 from dexflow.errors import HandConfigError
 from dexflow.hands.physics import mjcf_inertials, physics_urdf
 from dexflow.hands.robot import RobotHand
-from dexflow.mujoco_world import HAND_PREFIX, MujocoGraspWorld
 from dexflow.objects.convex import write_convex_obj
 from dexflow.params import ReplayParams, SimulateParams
-from dexflow.replay import ReplayWorld
-from dexflow.simulate import GraspWorld, hand_urdf
+from dexflow.sim.mujoco_world import HAND_PREFIX, MujocoGraspWorld
+from dexflow.sim.pybullet_world import PybulletGraspWorld, hand_urdf
+from dexflow.sim.replay_world import ReplayWorld
 
 __all__ = ["SETTLE_STEPS", "check_scenes"]
 
@@ -176,7 +177,9 @@ def check_scenes(
 
         if "pybullet" in simulate.engines:
             urdf = hand_urdf(hand, simulate)
-            bullet = build("grasp test (pybullet)", lambda: GraspWorld(hand, urdf, simulate))
+            bullet = build(
+                "grasp test (pybullet)", lambda: PybulletGraspWorld(hand, urdf, simulate)
+            )
             try:
                 found = bullet.test_frame(q, pose)
             finally:

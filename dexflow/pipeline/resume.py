@@ -18,7 +18,7 @@ writes ``summary.json`` and removes the bookkeeping, so a completed output direc
 exactly the stage's outputs (what DVC hashes: no timestamps, no absolute paths) and a later run
 starts from scratch. Items that failed leave no record and are retried.
 
-Failures are of two kinds (:mod:`dexflow.parallel`). An item whose input is bad
+Failures are of two kinds (:mod:`dexflow.pipeline.parallel`). An item whose input is bad
 (:class:`~dexflow.errors.DexflowError`) is *dropped*: listed in ``summary.json`` with its reason,
 the others complete. An item that failed for another reason (a full disk, memory, a killed
 worker) makes :meth:`StageOutput.finish` raise :class:`IncompleteStageError` instead of writing
@@ -60,7 +60,7 @@ import numpy as np
 from dexflow.errors import IncompleteStageError
 from dexflow.io.atomic import atomic_path, save_json
 from dexflow.io.layout import StageDir, stray_files
-from dexflow.parallel import ItemResult, map_items
+from dexflow.pipeline.parallel import ItemResult, map_items
 
 if TYPE_CHECKING:
     from dexflow.params import RunParams
@@ -103,7 +103,7 @@ def _files_digest(paths: Iterable[Path], relative_to: Path | None = None) -> str
 @functools.lru_cache(maxsize=1)
 def code_digest() -> str:
     """Digest of every file of the dexflow package (code and assets), excluding caches."""
-    package = Path(__file__).resolve().parent
+    package = Path(__file__).resolve().parents[1]  # the dexflow package
     files = sorted(p for p in package.rglob("*") if p.is_file() and "__pycache__" not in p.parts)
     return _files_digest(files, relative_to=package)
 
@@ -253,7 +253,7 @@ class StageOutput:
         name: Callable[[Any], str] = _stem,
         inputs: Callable[[Any], list[Path]] | None = None,
     ) -> list[ItemResult]:
-        """:func:`dexflow.parallel.map_items`, skipping the items an interrupted run completed.
+        """:func:`dexflow.pipeline.parallel.map_items`, skipping the items an interrupted run completed.
 
         Args:
             func: Function of one item; writes the item's outputs (atomically) below

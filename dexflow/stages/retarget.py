@@ -59,8 +59,8 @@ from dexflow.io.layout import Layout
 from dexflow.io.sequence import Sequence, load_sequence
 from dexflow.measures import fingertip_speeds, frame_chunks, rms_acceleration, velocity_kl
 from dexflow.params import GlobalSearchParams, PipelineParams, RetargetParams
-from dexflow.resume import StageOutput
-from dexflow.runner import StageSpec
+from dexflow.pipeline.resume import StageOutput
+from dexflow.pipeline.runner import StageSpec
 
 __all__ = [
     "STAGE",
@@ -519,7 +519,7 @@ def save_result(path: str | Path, result: RetargetResult, seq: Sequence) -> None
 
 def _sequence_metrics(result: RetargetResult, hand: RobotHand, seq: Sequence) -> dict:
     """The stage's per-sequence statistics. ``keypoint_error_mm`` and ``rms_acc`` are the
-    metrics stage's definitions (:mod:`dexflow.metrics`); ``*_gt`` compare with the demo's
+    metrics stage's definitions (:mod:`dexflow.stages.metrics`); ``*_gt`` compare with the demo's
     clean, true hand (only there). The velocity KL against the observed hand is the metrics
     stage's alone (pooled over sequences)."""
     fps = seq.fps

@@ -105,8 +105,8 @@ from dexflow.measures import (
 )
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import MetricsParams, PipelineParams
-from dexflow.resume import StageOutput
-from dexflow.runner import StageSpec
+from dexflow.pipeline.resume import StageOutput
+from dexflow.pipeline.runner import StageSpec
 
 __all__ = [
     "METHODS",

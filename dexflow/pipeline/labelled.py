@@ -14,7 +14,7 @@ from dexflow.io.artifacts import ContactResult, read_contact, read_trajectory
 from dexflow.io.layout import Layout, StageDir
 from dexflow.io.sequence import Sequence, load_sequence
 from dexflow.params import PipelineParams
-from dexflow.resume import StageOutput
+from dexflow.pipeline.resume import StageOutput
 
 __all__ = ["labelled_hand", "labelled_output", "load_labelled"]
 

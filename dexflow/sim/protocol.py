@@ -1,7 +1,8 @@
 """What the grasp tests of every engine share: push directions, the push step, perturbed trials.
 
-Stage simulate runs the same frames through pybullet (:class:`dexflow.simulate.GraspWorld`) and
-MuJoCo (:class:`dexflow.mujoco_world.MujocoGraspWorld`); both push the object along
+Stage simulate runs the same frames through pybullet
+(:class:`dexflow.sim.pybullet_world.PybulletGraspWorld`) and MuJoCo
+(:class:`dexflow.sim.mujoco_world.MujocoGraspWorld`); both push the object along
 :data:`DIRECTIONS`, call it held when a contact is closer than :data:`TOUCH_M`, turn contact
 points into joint targets with the same damped least-squares step (:func:`damped_step`,
 :func:`pushed_configuration`) and test the same perturbed copies of a frame

@@ -69,8 +69,8 @@ from dexflow.measures import (
 )
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import ContactParams, PipelineParams
-from dexflow.resume import StageOutput
-from dexflow.runner import StageSpec
+from dexflow.pipeline.resume import StageOutput
+from dexflow.pipeline.runner import StageSpec
 
 __all__ = [
     "STAGE",

@@ -15,7 +15,7 @@ from dexflow.errors import HandConfigError
 from dexflow.hands.files import copy_model
 from dexflow.io.layout import Layout
 from dexflow.params import PipelineParams
-from dexflow.runner import StageSpec
+from dexflow.pipeline.runner import StageSpec
 
 __all__ = ["STAGE", "run_hand"]
 

@@ -49,8 +49,8 @@ from dexflow.objects.mesh import MESH_WARNING, load_mesh, write_obj
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.objects.surface import sample_surface
 from dexflow.params import HandParams, PipelineParams
-from dexflow.resume import StageOutput
-from dexflow.runner import StageSpec
+from dexflow.pipeline.resume import StageOutput
+from dexflow.pipeline.runner import StageSpec
 
 __all__ = [
     "STAGE",

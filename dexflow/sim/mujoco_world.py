@@ -1,9 +1,9 @@
 """The per-frame grasp test in MuJoCo, with DexGraspBench's published protocol.
 
 :class:`MujocoGraspWorld` has the interface and the result of the pybullet
-:class:`dexflow.simulate.GraspWorld` (``set_object``, ``test_frame``, ``close``), so stage
+:class:`dexflow.sim.pybullet_world.PybulletGraspWorld` (``set_object``, ``test_frame``, ``close``), so stage
 simulate can run either engine on the same frames; what the two share (the push directions, the
-damped push step, the perturbed trials) is :mod:`dexflow.grasp_protocol`.
+damped push step, the perturbed trials) is :mod:`dexflow.sim.protocol`.
 
 The scene (one ``MjSpec`` per object, compiled once per :meth:`MujocoGraspWorld.set_object`):
 
@@ -54,7 +54,7 @@ Protocol for one frame ``(q, T)`` (numbers from ``params.mujoco`` unless said ot
    steps of ``steps_per_control`` physics steps, then grasp -> squeeze likewise. Every test
    below starts from that closed state (MuJoCo's whole integration state is saved and
    restored, so each steps exactly as from a fresh reset and close).
-4. For each direction ``d`` of :data:`dexflow.grasp_protocol.DIRECTIONS` (+x, -x, +y, -y, +z,
+4. For each direction ``d`` of :data:`dexflow.sim.protocol.DIRECTIONS` (+x, -x, +y, -y, +z,
    -z) in turn, two tests, each from the closed state:
 
    - **DexGraspBench's push**: a force ``force_scale * object_mass_kg`` newtons along ``d``
@@ -76,7 +76,7 @@ Protocol for one frame ``(q, T)`` (numbers from ``params.mujoco`` unless said ot
 Two diagnostics of why a frame fails, not criteria: how far the object moved and turned while
 the fingers closed, before any push (``closing_displacement_m``, ``closing_rotation_deg``),
 and how one-sided the pushes of step 2 are (``imbalance``,
-:func:`dexflow.grasp_protocol.imbalance` of the directions into the object at the pushed
+:func:`dexflow.sim.protocol.imbalance` of the directions into the object at the pushed
 bodies' closest contacts: 0 when they cancel, 1 when all press the same way). With gravity off
 and the object free, a squeeze that is not opposed shoves the object out of the hand before any
 force is applied: such a frame fails in its first direction, whatever that is.
@@ -100,7 +100,11 @@ import torch
 import trimesh
 
 from dexflow.errors import HandConfigError
-from dexflow.grasp_protocol import (
+from dexflow.hands.files import urdf_mesh_path
+from dexflow.hands.physics import WORLD_ALIAS, mjcf_inertials, physics_root, physics_urdf
+from dexflow.hands.robot import RobotHand, base_transform
+from dexflow.params import SimulateParams
+from dexflow.sim.protocol import (
     DIRECTIONS,
     TOUCH_M,
     Perturbation,
@@ -108,19 +112,15 @@ from dexflow.grasp_protocol import (
     imbalance,
     pushed_configuration,
 )
-from dexflow.hands.files import urdf_mesh_path
-from dexflow.hands.physics import WORLD_ALIAS, mjcf_inertials, physics_root, physics_urdf
-from dexflow.hands.robot import RobotHand, base_transform
-from dexflow.params import SimulateParams
 
-__all__ = ["HAND_PREFIX", "MujocoGraspWorld", "hand_name"]
+__all__ = ["HAND_PREFIX", "MOUNT", "MujocoGraspWorld", "add_object", "hand_name", "hand_spec"]
 
 _FK_CHECK_TOL_M = 1e-4  # MuJoCo's frames must match the kinematic model's
 _GAP_RANGE_M = 0.01  # MujocoGraspWorld.gap: +inf beyond this (MuJoCo's distances err at 10 cm)
 _HAND_SOLIMP = (0.5, 0.99, 0.0001)
 _HAND_SOLREF = (0.005, 1.0)
 _ROLLING_FRICTION = 1e-4  # MuJoCo's default; unused at condim 4
-_MOUNT = "dexflow_mount"
+MOUNT = "dexflow_mount"  # the mocap body the hand hangs from (stage replay drives it)
 _OBJECT = "dexflow_object"
 _STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # what _state saves
 _DROP_CHECK_S = 1 / 6  # seconds between checks for a dropped object in the gravity test
@@ -150,7 +150,7 @@ def _quat(rotation: np.ndarray) -> np.ndarray:
     return out
 
 
-def _hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
+def hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
     """The scene without an object: options, mocap mount, the hand and its actuators."""
     p, mp = params, params.mujoco
     if hand.model.format == "urdf":  # the repaired copy pybullet loads too
@@ -198,7 +198,7 @@ def _hand_spec(hand: RobotHand, params: SimulateParams) -> mujoco.MjSpec:
         a for a in dir(scene) if a.startswith("nuser_")
     ]:
         setattr(child, name, getattr(scene, name))
-    mount = scene.worldbody.add_body(name=_MOUNT, mocap=True)
+    mount = scene.worldbody.add_body(name=MOUNT, mocap=True)
     try:  # every name of the hand's gets the prefix: none can clash with the scene's
         mount.add_frame().attach_body(root, HAND_PREFIX, "")
     except ValueError as exc:
@@ -263,7 +263,7 @@ def hand_name(name: str) -> str:
     return HAND_PREFIX + (WORLD_ALIAS if name == "world" else name)
 
 
-def _add_object(scene: mujoco.MjSpec, parts: list[np.ndarray], params: SimulateParams) -> None:
+def add_object(scene: mujoco.MjSpec, parts: list[np.ndarray], params: SimulateParams) -> None:
     """A free body with one convex mesh geom per part, ``object_mass_kg`` at uniform density."""
     mp = params.mujoco
     volume = sum(trimesh.convex.convex_hull(v).volume for v in parts)
@@ -318,13 +318,13 @@ class MujocoGraspWorld:
     # ---------------------------------------------------------------------------- building
 
     def _scene(self) -> mujoco.MjSpec:
-        """The scene without an object (:class:`dexflow.replay.ReplayWorld` adds its own)."""
-        return _hand_spec(self.hand, self.params)
+        """The scene without an object (:class:`dexflow.sim.replay_world.ReplayWorld` adds its own)."""
+        return hand_spec(self.hand, self.params)
 
     def _with_object(self, parts: list[np.ndarray]) -> mujoco.MjSpec:
         """The scene with the object of ``parts`` added."""
         scene = self._spec.copy()
-        _add_object(scene, parts, self.params)
+        add_object(scene, parts, self.params)
         return scene
 
     def _compile(self, spec: mujoco.MjSpec) -> None:
@@ -339,7 +339,7 @@ class MujocoGraspWorld:
         joints = [m.joint(hand_name(n)) for n in self.hand.hand_joint_names]
         self._qpos = np.array([int(j.qposadr[0]) for j in joints])
         self._dofs = np.array([int(j.dofadr[0]) for j in joints])
-        mount = m.body(_MOUNT).id
+        mount = m.body(MOUNT).id
         self._mocap = int(m.body_mocapid[mount])
         parents = m.body_parentid
         hand_body = np.zeros(m.nbody, bool)
@@ -538,14 +538,14 @@ class MujocoGraspWorld:
 
         Returns:
             ``parts_penetration_m`` (float), ``pushed_links`` (int), ``imbalance`` (float,
-            :func:`dexflow.grasp_protocol.imbalance` of the pushed bodies' directions into the
+            :func:`dexflow.sim.protocol.imbalance` of the pushed bodies' directions into the
             object), ``closing_displacement_m`` and ``closing_rotation_deg`` (floats: how far
             the object moved and turned while the fingers closed, before any push; NaN in
             pybullet's test, which holds the object then), ``touching (F,)`` bool per finger of
             the hand config, ``held (6,)`` (held at the end of each gravity test),
             ``displacement_m (6,)``, ``rotation_deg (6,)`` and ``tested (6,)`` (of the
             pushes) and the criteria ``contact`` (the paper's), ``bench`` (bools); directions in
-            :data:`dexflow.simulate.DIRECTIONS` order.
+            :data:`dexflow.stages.simulate.DIRECTIONS` order.
         """
         self._require_object("test_frame")
         p, mp, m, d = self.params, self.params.mujoco, self.model, self.data

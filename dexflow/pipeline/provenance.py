@@ -18,7 +18,7 @@ pybullet and numpy (not the kernel release, not the host name). Runs with the sa
 comparable; with different ids, a difference may be the machine's.
 
 Each stage run records its provenance beside its speeds in ``reports/timing/<tag>.json`` (not a
-DVC output; :func:`stage_record`, written by :mod:`dexflow.runner`)::
+DVC output; :func:`stage_record`, written by :mod:`dexflow.pipeline.runner`)::
 
     {"frames_per_second": 53.4,
      "provenance": {"commit": ..., "dirty": false, "machine_id": ..., "machine": {...},
@@ -76,7 +76,7 @@ MADE_KEPT = 64
 PACKAGES = ("torch", "mujoco", "pybullet", "numpy")
 # The outputs of the pipeline itself: rewritten by every `dvc repro`, so no "uncommitted change".
 OUTPUTS = ("reports", "dvc.lock")
-_CODE = Path(__file__).resolve().parent
+_CODE = Path(__file__).resolve().parents[1]  # the dexflow package
 
 
 def _git(*args: str, root: Path | None = None) -> str | None:

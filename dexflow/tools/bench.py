@@ -10,10 +10,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dexflow.errors import ConfigError
 from dexflow.io.layout import Layout, StageDir
 from dexflow.params import SimulateParams
-from dexflow.tip_motion import NEAR_M
+from dexflow.tools.tip_motion import NEAR_M
 
 __all__ = [
     "bench_fk",
@@ -133,7 +132,7 @@ def bench_retarget(
     from dexflow.config import load_params
     from dexflow.hands.robot import load_hand
     from dexflow.io.sequence import load_sequence
-    from dexflow.retarget import retarget_sequence
+    from dexflow.stages.retarget import retarget_sequence
 
     torch.set_num_threads(1)
     files = StageDir(Path(data_root)).sequence_files()
@@ -234,7 +233,7 @@ def bench_refine(
     the same frames refined one frame at a time, measured in the same run. Needs `dvc repro`."""
     from dexflow.config import load_params
     from dexflow.hands.robot import load_hand
-    from dexflow.refine import TorchSDF, refine_trajectory
+    from dexflow.stages.refine import TorchSDF, refine_trajectory
 
     torch.set_num_threads(1)
     params = load_params("params.yaml").refine
@@ -275,8 +274,8 @@ def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 
 
     from dexflow.config import load_params
     from dexflow.hands.robot import load_hand
-    from dexflow.mujoco_world import MujocoGraspWorld
-    from dexflow.simulate import GraspWorld, hand_urdf
+    from dexflow.sim.mujoco_world import MujocoGraspWorld
+    from dexflow.sim.pybullet_world import PybulletGraspWorld, hand_urdf
 
     torch.set_num_threads(1)
     params = load_params("params.yaml").simulate
@@ -300,9 +299,9 @@ def bench_simulate(hand_name: str = "shadow", sequences: int = 3, frames: int = 
         world.close()
         return len(jobs) * frames / seconds, tests, held
 
-    fast, fast_tests, fast_held = run(GraspWorld(hand, hand_urdf(hand), params))
+    fast, fast_tests, fast_held = run(PybulletGraspWorld(hand, hand_urdf(hand), params))
     full_params = dataclasses.replace(params, early_exit=False)
-    full, full_tests, _ = run(GraspWorld(hand, hand_urdf(hand), full_params))
+    full, full_tests, _ = run(PybulletGraspWorld(hand, hand_urdf(hand), full_params))
     mujoco, mujoco_tests, mujoco_held = run(MujocoGraspWorld(hand, params))
     n = len(jobs) * frames
     print(f"hand {hand_name}, {n} refined frames after first contact, 1 thread")
@@ -454,7 +453,7 @@ def bench_pipeline(
 def _machine_line() -> str:
     """The benchmark reports' line saying how they were measured (the machine itself is in the
     provenance block :func:`_publish` adds)."""
-    from dexflow import provenance
+    from dexflow.pipeline import provenance
 
     return (
         f"Machine: {provenance.machine_id()} (see *Measured at*). Wall-clock seconds; other load "
@@ -465,8 +464,8 @@ def _machine_line() -> str:
 def _publish(text: str, out: str | None) -> None:
     """Print a benchmark report and write it to ``out`` (atomically; None: print only), with
     where it was measured under its title: the commit and the machine
-    (:func:`dexflow.provenance.markdown`; the data is in the report's first paragraph)."""
-    from dexflow import provenance
+    (:func:`dexflow.pipeline.provenance.markdown`; the data is in the report's first paragraph)."""
+    from dexflow.pipeline import provenance
 
     title, _, rest = text.partition("\n")
     block = "\n".join(["", "Measured at:", "", *provenance.markdown()])
@@ -490,36 +489,27 @@ def _peak_rss_mb() -> float:
 
 
 def _pipeline_stages(params, layout) -> list[tuple[str, Callable[[], dict]]]:
-    """Every stage of ``dvc.yaml`` as (name, call) on the project ``layout``, in the order
-    :func:`dexflow.sweep.load_stages` reads from it (file order, a stage after those whose
-    outputs it reads with these ``params``: refine after replay@retarget only with the grip
-    on): the stage specs the stage scripts run, with the same arguments (``foreach`` items).
-    The demo is called ``demo``; the report, which times nothing, is left out.
+    """Every stage of ``dvc.yaml`` as (name, call) on the project ``layout``, in the order of
+    the registry (:func:`dexflow.pipeline.registry.load_stages` with these ``params``: refine
+    after replay@retarget only with the grip on), each run by the executor
+    (:func:`dexflow.pipeline.executor.run_in_process`) as its script runs it. The demo is called
+    ``demo``; the report, which times nothing, is left out.
 
     Raises:
         ConfigError: ``dvc.yaml`` has a stage that no stage module defines.
     """
-    from dexflow import align, contact, hand_stage, metrics, refine, replay, retarget, simulate
-    from dexflow.data.demo import generate_demo
-    from dexflow.runner import run_stage
-    from dexflow.sweep import load_stages
+    from dexflow.pipeline.executor import run_in_process
+    from dexflow.pipeline.registry import load_stages, pipeline_file, stage_spec
 
-    modules = (hand_stage, align, retarget, contact, refine, simulate, replay, metrics)
-    specs = {module.STAGE.name: module.STAGE for module in modules}
-    dvc_yaml = Path(__file__).resolve().parents[1] / "dvc.yaml"
-
-    def call(spec, args) -> Callable[[], dict]:
-        return lambda: run_stage(spec, params, layout, args)
+    def call(stage) -> Callable[[], dict]:
+        return lambda: run_in_process(stage, params, layout)
 
     steps = []
-    for stage in load_stages(dvc_yaml, dataclasses.asdict(params)):
-        base, _, item = stage.name.partition("@")
-        if base == "demo":
-            steps.append(("demo", lambda: generate_demo(params.demo, layout.data.root, params.run)))
-        elif base in specs:
-            steps.append((stage.name, call(specs[base], (item,) if item else ())))
-        elif base != "report":
-            raise ConfigError(f"{dvc_yaml}: stage {base!r} is run by no dexflow stage module")
+    for stage in load_stages(pipeline_file(), dataclasses.asdict(params)):
+        base = stage.name.partition("@")[0]
+        if base != "report":
+            stage_spec(stage.name)  # a stage no module runs fails here, before anything runs
+            steps.append(("demo" if base == "demo" else stage.name, call(stage)))
     return steps
 
 
@@ -621,7 +611,7 @@ def _per_frame(run: dict) -> float:
 
 _STAGE_DRIVER = """
 import dataclasses, json, sys, time
-from dexflow.bench import _pipeline_stages
+from dexflow.tools.bench import _pipeline_stages
 from dexflow.config import load_params
 from dexflow.io.layout import Layout
 params_file, data_root, project, wanted = sys.argv[1:5]
@@ -880,13 +870,13 @@ def bench_real(
 
 
 def refine_motion(params, layout: Layout) -> dict[str, float]:
-    """:func:`dexflow.tip_motion.summarize_motion` of retargeted -> refined over every
+    """:func:`dexflow.tools.tip_motion.summarize_motion` of retargeted -> refined over every
     sequence that both stages wrote (stage outputs in ``layout``)."""
     from dexflow.hands.files import staged_spec
     from dexflow.hands.robot import cached_hand
     from dexflow.io.artifacts import ObjectAssets, read_trajectory
     from dexflow.io.sequence import load_sequence
-    from dexflow.tip_motion import fingertip_motion, summarize_motion
+    from dexflow.tools.tip_motion import fingertip_motion, summarize_motion
 
     hand = cached_hand(staged_spec(params.hand, layout.hand_files.root), None)
     aligned, parts = layout.scale_align, []
@@ -917,15 +907,15 @@ def grasp_breakdown(out: StageDir, params: SimulateParams | None = None) -> dict
     beyond the criterion's thresholds (``params``: ``max_displacement_m``,
     ``max_rotation_deg``) while the fingers closed, before any push (0 for an engine that
     holds the object then); the median ``imbalance`` of the pushes
-    (:func:`dexflow.grasp_protocol.imbalance`: 0 opposed, 1 one-sided) of the held frames
+    (:func:`dexflow.sim.protocol.imbalance`: 0 opposed, 1 one-sided) of the held frames
     (``imbalance_held``) and of the failed ones (``imbalance_failed``), and likewise that of
     stage contact's contacts at those frames (``contact_imbalance_held``,
-    ``contact_imbalance_failed``: :func:`dexflow.grasp_protocol.contact_imbalance`).
+    ``contact_imbalance_failed``: :func:`dexflow.sim.protocol.contact_imbalance`).
     """
     import json
 
-    from dexflow.grasp_protocol import lost_while_closing
     from dexflow.io.artifacts import read_simulation
+    from dexflow.sim.protocol import lost_while_closing
 
     p = params or SimulateParams()
     summary = json.loads(out.summary.read_text())
@@ -978,7 +968,7 @@ def _median(values: list[float]) -> float:
 
 def _grasp_lines(results: dict[str, dict]) -> list[str]:
     """The table of :func:`grasp_breakdown` per hand and method."""
-    from dexflow.report import _cell
+    from dexflow.stages.report import _cell
 
     rows = [(h, m, g) for h, r in results.items() for m, g in r.get("grasps", {}).items()]
     if not rows:
@@ -990,7 +980,7 @@ def _grasp_lines(results: dict[str, dict]) -> list[str]:
         "while the fingers closed, before any push; *imbalance*: how one-sided the pushes into "
         "the object are, 0 when they cancel, 1 when all press the same way; *contact "
         "imbalance*: the same of the contacts stage contact found at the frame, those the grasp "
-        "aims for, `dexflow/grasp_protocol.py`):",
+        "aims for, `dexflow/sim/protocol.py`):",
         "",
         "| hand | method | frames tested | skipped (over the penetration tolerance) | held "
         "| opposed | opposed and held | failed: median displacement mm / rotation ° "
@@ -1010,14 +1000,14 @@ def _grasp_lines(results: dict[str, dict]) -> list[str]:
 
 
 def _motion_lines(results: dict[str, dict]) -> list[str]:
-    """The table of where refinement moved the fingertips (:mod:`dexflow.tip_motion`)."""
+    """The table of where refinement moved the fingertips (:mod:`dexflow.tools.tip_motion`)."""
     rows = [(hand, r["motion"]) for hand, r in results.items() if r.get("motion", {}).get("tips")]
     if not rows:
         return []
     lines = [
         "Where refinement moves the fingertips (retargeted -> refined, observed frames; "
         f"*near*: the human fingertip within {1000 * NEAR_M:.0f} mm of the object; "
-        "definitions in `dexflow/tip_motion.py`):",
+        "definitions in `dexflow/tools/tip_motion.py`):",
         "",
         "| hand | human tips inside the object mm | near % | near: fingertip error mm "
         "| near: moved along the normal (outward) / across it mm | far: fingertip error mm "
@@ -1046,7 +1036,7 @@ def _real_table(
         "# dexflow on real captures",
         "",
         f"`{command}`: the pipeline at the project's defaults, per hand, on the converted data "
-        f"in `{source}` ({data}); metrics as defined in `dexflow/metrics.py` (observed frames "
+        f"in `{source}` ({data}); metrics as defined in `dexflow/stages/metrics.py` (observed frames "
         "only for the errors).",
         "",
         _machine_line(),

@@ -2,7 +2,7 @@
 
 ``dexflow report ablation --suite paper`` runs the default configuration and every experiment of
 ``conf/experiment/`` that a question of the suite names, one pipeline run per experiment in its
-own directory (``multirun/<report name>/<experiment>/``, the machinery of ``dexflow.sweep``: a
+own directory (``multirun/<report name>/<experiment>/``, the machinery of ``dexflow.tools.sweep``: a
 stage whose params an experiment leaves unchanged is reused, not rerun), then writes one table
 per question. Running it again reuses every experiment that finished with the same composed
 params and the same dexflow code (a digest of the package's files); an interrupted or failed
@@ -17,7 +17,7 @@ says so instead of calling it an effect. The intervals are per comparison: with 
 in a suite, one or two "resolved" differences are expected by chance alone (no multiplicity
 correction), and sequences of the same object are not fully independent, so the intervals are,
 if anything, optimistic. Values are means over sequences of the per-sequence metrics that stage metrics
-writes (``data/metrics/sequences.csv``; definitions in :mod:`dexflow.metrics`), so a pooled
+writes (``data/metrics/sequences.csv``; definitions in :mod:`dexflow.stages.metrics`), so a pooled
 aggregate of ``reports/metrics/metrics.json`` (velocity KL pools the speeds, ``pd_max_mm`` is a
 maximum) can differ from the mean shown here. Aggregates that exist only pooled (contact
 precision, recall and flicker; retarget speed) are shown without a spread.
@@ -25,7 +25,7 @@ precision, recall and flicker; retarget speed) are shown without a spread.
 Which runs are compared. Two machines can give different numbers for the same parameters (a
 library version, the CPU), so only runs of one machine are compared: every stage of the default
 and of the experiment must have been made on the same machine, as their ``reports/timing``
-records say (:mod:`dexflow.provenance`). The suite reruns here whatever this machine did not
+records say (:mod:`dexflow.pipeline.provenance`). The suite reruns here whatever this machine did not
 make (the project's outputs committed from elsewhere included); the report states the machine,
 and lists any experiment it cannot compare with the reason.
 """
@@ -42,12 +42,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dexflow import provenance, stats
+from dexflow import stats
 from dexflow.errors import ConfigError
 from dexflow.io.atomic import atomic_path, save_json
 from dexflow.io.layout import Layout
-from dexflow.resume import code_digest
-from dexflow.sweep import STATUS_FILE, UNFINISHED
+from dexflow.pipeline import provenance
+from dexflow.pipeline.resume import code_digest
+from dexflow.tools.sweep import STATUS_FILE, UNFINISHED
 
 __all__ = [
     "SUITES",
@@ -177,7 +178,7 @@ class ExperimentResult:
         rows: The per-sequence rows of ``sequences.csv`` (strings as read).
         pooled: Flat numbers of ``reports/metrics/*.json`` (``contact.precision``) and
             ``reports/timing/*.json`` (``timing.<stage>.frames_per_second``).
-        stages: Per stage who made its outputs (:func:`dexflow.provenance.stages_of`:
+        stages: Per stage who made its outputs (:func:`dexflow.pipeline.provenance.stages_of`:
             machine, commit; None where not recorded).
     """
 
@@ -239,7 +240,7 @@ def load_result(job: Path, name: str | None = None) -> ExperimentResult:
     return ExperimentResult(name, "complete", None, rows, pooled, stages)
 
 
-# The keys of a reports/timing record that say where the stage ran (dexflow.provenance).
+# The keys of a reports/timing record that say where the stage ran (dexflow.pipeline.provenance).
 _RECORD_KEYS = ("provenance", "metrics_digest", "made")
 
 
@@ -564,7 +565,7 @@ def run_suite(
     from omegaconf import OmegaConf
 
     from dexflow.config import compose_params
-    from dexflow.sweep import run_job
+    from dexflow.tools.sweep import run_job
 
     project, jobs_dir = Path(project).resolve(), Path(jobs_dir).resolve()
     names = suite_experiments(suite)

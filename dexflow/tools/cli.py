@@ -215,7 +215,7 @@ def _check_physics(hand) -> list[str]:
     simulate and replay params (``params.yaml`` here, else the defaults)."""
     from dexflow.config import load_params
     from dexflow.params import ReplayParams, SimulateParams
-    from dexflow.scene_check import check_scenes
+    from dexflow.sim.scene_check import check_scenes
 
     if Path("params.yaml").is_file():
         params = load_params("params.yaml")
@@ -246,7 +246,7 @@ def _cmd_hand_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from dexflow.bench import (
+    from dexflow.tools.bench import (
         bench_fk,
         bench_long,
         bench_pipeline,
@@ -296,8 +296,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
     import json
     import subprocess
 
-    from dexflow import report
     from dexflow.io.layout import Layout
+    from dexflow.stages import report
 
     if args.what == "summary":
         out = report.write_project_summary(Layout(), out_md=args.out)
@@ -326,7 +326,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     if not experiments:
         logging.error("no experiments found (dvc exp show and --multirun directories are empty)")
         return 1
-    from dexflow import provenance
+    from dexflow.pipeline import provenance
 
     out = Path(args.out) if args.out else Layout().reports / "sweep.md"
     machine = None if args.any_machine else provenance.machine_id()
@@ -337,8 +337,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 def _ablation_suite(args: argparse.Namespace) -> int:
     """``report ablation --suite NAME``: run (or resume) the suite, then write its report."""
-    from dexflow import ablation
     from dexflow.config import project_root
+    from dexflow.tools import ablation
 
     root = project_root()
     default_out = Path("reports") / "ablation.md"
@@ -367,7 +367,7 @@ def _ablation_suite(args: argparse.Namespace) -> int:
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
-    from dexflow.viz import open_viewer, record_sequence
+    from dexflow.tools.viz import open_viewer, record_sequence
 
     out = record_sequence(args.sequence, args.out, trajectory=args.trajectory)
     print(f"wrote {out}")
@@ -505,7 +505,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("report", help="generate reports/summary.md or reports/ablation.md")
     p.add_argument("what", choices=["summary", "ablation"])
     p.add_argument(
-        "--suite", choices=["paper"],  # dexflow.ablation.SUITES (not imported at start-up)
+        "--suite", choices=["paper"],  # dexflow.tools.ablation.SUITES (not imported at start-up)
         help="ablation: run the suite's named experiments (conf/experiment) in "
         "multirun/<out name>/, resuming finished ones, and write one table per question",
     )  # fmt: skip

@@ -1,6 +1,6 @@
 """Hydra multirun over ``conf/`` without DVC experiments: one pipeline run per Hydra job.
 
-``python -m dexflow.sweep -m contact.dis_min_m=0.008,0.010,0.012`` (or ``dexflow-sweep``)
+``python -m dexflow.tools.sweep -m contact.dis_min_m=0.008,0.010,0.012`` (or ``dexflow-sweep``)
 composes ``conf/`` once per job, exactly as ``dvc exp run -S`` would, and runs the stages of
 ``dvc.yaml`` in dependency order (file order, a stage after those whose outputs it reads) inside
 the job's directory (``multirun/<date>/<time>/<job>/``). A stage is
@@ -13,7 +13,7 @@ reused instead of run when
 - every stage upstream of it (whose outputs it depends on) was reused,
 - the project has all of its outputs, and
 - (``dexflow-sweep`` and the ablation suite: :func:`run_job`'s ``machine``) this machine made
-  them, as the project's ``reports/timing/<stage>.json`` records (:mod:`dexflow.provenance`):
+  them, as the project's ``reports/timing/<stage>.json`` records (:mod:`dexflow.pipeline.provenance`):
   outputs made on another machine, or without a record (restored from git or the DVC cache),
   are made again, so that the jobs compared with each other come from one machine.
 
@@ -40,10 +40,7 @@ from __future__ import annotations
 import json
 import logging
 import os
-import re
-import shlex
 import shutil
-import subprocess
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -53,15 +50,24 @@ from typing import Any
 from dvc.utils.serialize import load_yaml  # YAML 1.2 as DVC reads it: `1e-05` is a float
 from omegaconf import DictConfig, OmegaConf
 
-from dexflow import provenance
 from dexflow.config import load_params, project_root
 from dexflow.errors import ConfigError
+from dexflow.pipeline import provenance
+from dexflow.pipeline.executor import remove_path, run_command
+from dexflow.pipeline.registry import (
+    METRICS_DIR,
+    Stage,
+    load_stages,
+    lookup,
+    overlaps,
+    upstream_stages,
+)
 
-__all__ = ["Stage", "load_stages", "main", "run_job", "upstream_stages"]
+__all__ = ["main", "run_job"]
 log = logging.getLogger(__name__)
 
 STATUS_FILE = "sweep_status.json"
-METRICS_DIR, TIMING_DIR = "reports/metrics", "reports/timing"  # as dexflow.io.layout has them
+TIMING_DIR = "reports/timing"  # as dexflow.io.layout has it
 UNFINISHED = "did not finish (interrupted?)"  # the status a job holds while a stage runs
 APP_CONFIG = "dexflow_sweep"
 # Symlinked into every job so that stage commands (`python stages/x.py`) and
@@ -77,45 +83,7 @@ reusing the project's outputs where a job's params leave a stage unchanged.
 Results: multirun/<date>/<time>/<job>/ (params.yaml, reports/metrics, sweep_status.json);
 summarise them with `dexflow report ablation --multirun multirun/<date>/<time>`.
 """
-_INTERPOLATION = re.compile(r"\$\{([^}]+)\}")
 _PYTHON = ("python", "python3")
-
-
-@dataclass(frozen=True)
-class Stage:
-    """One stage of ``dvc.yaml`` (a ``foreach`` stage gives one per item: ``name@key``).
-
-    Attributes:
-        name: ``contact``, ``retarget@dexflow``.
-        cmd: The command, interpolated.
-        deps: Dependency paths, relative to the project.
-        params: Dotted keys of ``params.yaml`` the stage reads (``hand``, ``contact.dis_min_m``).
-        outs: Cached outputs (``outs``/``metrics``/``plots`` without ``cache: false``).
-        copies: ``cache: false`` outputs (reports: small, one copy per job).
-        persist: Outputs marked ``persist: true``: not deleted before the stage runs.
-    """
-
-    name: str
-    cmd: str
-    deps: tuple[str, ...] = ()
-    params: tuple[str, ...] = ()
-    outs: tuple[str, ...] = ()
-    copies: tuple[str, ...] = ()
-    persist: tuple[str, ...] = ()
-
-    @property
-    def outputs(self) -> tuple[str, ...]:
-        return self.outs + self.copies
-
-    @property
-    def tag(self) -> str:
-        """The name of its ``reports/metrics`` and ``reports/timing`` files: its metrics file's
-        (``demo@demo`` writes ``demo.json``), else ``name@item`` -> ``name_item``."""
-        for path in self.copies:
-            rel = Path(path)
-            if rel.parent == Path(METRICS_DIR) and rel.suffix == ".json":
-                return rel.stem
-        return self.name.replace("@", "_")
 
 
 @dataclass
@@ -133,192 +101,6 @@ class _Status:
         os.replace(tmp, path)
 
 
-def _lookup(context: Mapping[str, Any], dotted: str) -> Any:
-    node: Any = context
-    for part in dotted.split("."):
-        if not isinstance(node, Mapping) or part not in node:
-            raise KeyError(dotted)
-        node = node[part]
-    return node
-
-
-def _interpolate(value: Any, context: Mapping[str, Any], where: str) -> Any:
-    """``${item}``, ``${key}`` and ``${dotted.param}`` in strings, recursively."""
-    if isinstance(value, list):
-        return [_interpolate(v, context, where) for v in value]
-    if isinstance(value, dict):
-        return {
-            _interpolate(k, context, where): _interpolate(v, context, where)
-            for k, v in value.items()
-        }
-    if not isinstance(value, str):
-        return value
-
-    def substitute(match: re.Match) -> str:
-        try:
-            return str(_lookup(context, match.group(1).strip()))
-        except KeyError:
-            raise ConfigError(
-                f"dvc.yaml stage '{where}': cannot interpolate ${{{match.group(1)}}}: "
-                "no such key in params.yaml"
-            ) from None
-
-    return _INTERPOLATION.sub(substitute, value)
-
-
-def _paths(entries: list | None, where: str) -> tuple[list[str], list[str], list[str]]:
-    """Cached, ``cache: false`` and ``persist: true`` paths of an ``outs``/``metrics``/``plots``
-    list."""
-    cached, uncached, persist = [], [], []
-    for entry in entries or []:
-        if isinstance(entry, str):
-            entry = {entry: None}
-        if not (isinstance(entry, dict) and len(entry) == 1):
-            raise ConfigError(f"dvc.yaml stage '{where}': cannot read output entry {entry!r}")
-        ((path, options),) = entry.items()
-        options = options or {}
-        (cached if options.get("cache", True) else uncached).append(str(path))
-        if options.get("persist", False):
-            persist.append(str(path))
-    return cached, uncached, persist
-
-
-def _param_keys(entries: list | None, where: str) -> tuple[str, ...]:
-    keys: list[str] = []
-    for entry in entries or []:
-        if isinstance(entry, str):
-            keys.append(entry)
-        elif isinstance(entry, dict) and set(entry) == {"params.yaml"}:
-            keys += list(entry["params.yaml"] or [])
-        else:
-            raise ConfigError(
-                f"dvc.yaml stage '{where}': params {entry!r}: dexflow.sweep reads only params "
-                "from params.yaml"
-            )
-    return tuple(keys)
-
-
-def _stage(name: str, body: dict, context: Mapping[str, Any]) -> Stage:
-    unsupported = sorted(set(body) - {"cmd", "deps", "params", "outs", "metrics", "plots", "desc",
-                                      "meta", "always_changed", "frozen"})  # fmt: skip
-    if unsupported:
-        raise ConfigError(f"dvc.yaml stage '{name}': dexflow.sweep does not support {unsupported}")
-    body = _interpolate(body, context, name)
-    cmd = body.get("cmd")
-    if isinstance(cmd, list):
-        cmd = " && ".join(cmd)
-    if not isinstance(cmd, str) or not cmd.strip():
-        raise ConfigError(f"dvc.yaml stage '{name}': expected a cmd, found {cmd!r}")
-    outs, copies, persist = [], [], []
-    for key in ("outs", "metrics", "plots"):
-        cached, uncached, persisted = _paths(body.get(key), name)
-        outs += cached
-        copies += uncached
-        persist += persisted
-    for path in outs + copies:
-        if Path(path).is_absolute() or ".." in Path(path).parts:
-            raise ConfigError(
-                f"dvc.yaml stage '{name}': output {path!r} is outside the project; a sweep job "
-                "can only hold outputs relative to it"
-            )
-    return Stage(
-        name=name,
-        cmd=cmd,
-        deps=tuple(str(d) for d in body.get("deps") or []),
-        params=_param_keys(body.get("params"), name),
-        outs=tuple(outs),
-        copies=tuple(copies),
-        persist=tuple(persist),
-    )
-
-
-def load_stages(dvc_yaml: str | Path, params: Mapping[str, Any]) -> list[Stage]:
-    """The stages of ``dvc.yaml``, ``foreach`` expanded, interpolated, in the order they run:
-    file order, except that a stage waits for the stages whose outputs it depends on (refine
-    reads replay@retarget, written by a ``foreach`` stage further down).
-
-    Args:
-        dvc_yaml: The pipeline file.
-        params: The contents of ``params.yaml`` that ``${...}`` refers to.
-
-    Returns:
-        One :class:`Stage` per stage; a ``foreach`` over a list gives ``name@<item>``, over a
-        dict ``name@<key>`` (as DVC names them).
-
-    Raises:
-        ConfigError: a construct dexflow.sweep does not read (``matrix``, ``vars``, ``wdir``,
-            params from other files), or an interpolation with no such key.
-    """
-    spec = load_yaml(dvc_yaml) or {}
-    if "vars" in spec:
-        raise ConfigError(f"{dvc_yaml}: dexflow.sweep does not support top-level 'vars'")
-    stages = []
-    for name, body in (spec.get("stages") or {}).items():
-        if "foreach" in body:
-            items = body["foreach"]
-            if isinstance(items, str):  # ``foreach: ${dotted.param}``: the list or dict itself
-                whole = _INTERPOLATION.fullmatch(items.strip())
-                if whole is None:
-                    raise ConfigError(
-                        f"dvc.yaml stage '{name}': foreach {items!r} is not a list, a dict or "
-                        "one ${param}"
-                    )
-                try:
-                    items = _lookup(params, whole.group(1).strip())
-                except KeyError:
-                    raise ConfigError(
-                        f"dvc.yaml stage '{name}': cannot interpolate {items}: no such key in "
-                        "params.yaml"
-                    ) from None
-            pairs = items.items() if isinstance(items, dict) else ((i, i) for i in items)
-            for key, item in pairs:
-                context = {**params, "item": item, "key": key}
-                stages.append(_stage(f"{name}@{key}", body["do"], context))
-        else:
-            stages.append(_stage(name, body, params))
-    return _in_dependency_order(stages, dvc_yaml)
-
-
-def _in_dependency_order(stages: list[Stage], where: str | Path) -> list[Stage]:
-    """``stages`` reordered so that every stage comes after those whose outputs it depends on;
-    otherwise in file order (the first stage that can run next runs next)."""
-    producers = {s.name: {o.name for o in stages if _reads(s, o)} for s in stages}
-    ordered: list[Stage] = []
-    placed: set[str] = set()
-    while len(ordered) < len(stages):
-        ready = next((s for s in stages if s.name not in placed and producers[s.name] <= placed),
-                     None)  # fmt: skip
-        if ready is None:
-            cycle = sorted(n for n in producers if n not in placed)
-            raise ConfigError(f"{where}: the stages {cycle} depend on each other's outputs")
-        ordered.append(ready)
-        placed.add(ready.name)
-    return ordered
-
-
-def _overlaps(a: str, b: str) -> bool:
-    pa, pb = Path(a).parts, Path(b).parts
-    n = min(len(pa), len(pb))
-    return pa[:n] == pb[:n]
-
-
-def _reads(stage: Stage, other: Stage) -> bool:
-    """Whether ``stage`` depends on an output of ``other`` (a dep equal to, inside or containing
-    one of them)."""
-    return other is not stage and any(
-        _overlaps(dep, out) for dep in stage.deps for out in other.outputs
-    )
-
-
-def upstream_stages(stages: list[Stage]) -> dict[str, list[str]]:
-    """For each stage, the earlier stages whose outputs it depends on (a dep equal to, inside
-    or containing one of their outputs)."""
-    upstream: dict[str, list[str]] = {}
-    for i, stage in enumerate(stages):
-        upstream[stage.name] = [other.name for other in stages[:i] if _reads(stage, other)]
-    return upstream
-
-
 def _difference(a: Any, b: Any, key: str) -> str | None:
     """The first dotted key at or under ``key`` where ``a`` and ``b`` differ, or None."""
     if isinstance(a, Mapping) and isinstance(b, Mapping):
@@ -332,7 +114,7 @@ def _difference(a: Any, b: Any, key: str) -> str | None:
 
 def _get(params: Mapping[str, Any], key: str) -> Any:
     try:
-        return _lookup(params, key)
+        return lookup(params, key)
     except KeyError:
         return None
 
@@ -386,7 +168,7 @@ def _why_not_reused(
 
 
 def _made_by(stage: Stage, root: Path) -> dict[str, Any] | None:
-    """Who made the project's outputs of ``stage`` (:func:`dexflow.provenance.made_by`)."""
+    """Who made the project's outputs of ``stage`` (:func:`dexflow.pipeline.provenance.made_by`)."""
     record = provenance.read_records(root / TIMING_DIR).get(stage.tag)
     metrics_file = root / METRICS_DIR / f"{stage.tag}.json"
     metrics = None
@@ -398,19 +180,12 @@ def _made_by(stage: Stage, root: Path) -> dict[str, Any] | None:
     return provenance.made_by(metrics, record)
 
 
-def _remove(path: Path) -> None:
-    if path.is_symlink() or path.is_file():
-        path.unlink()
-    elif path.is_dir():
-        shutil.rmtree(path)
-
-
 def _reuse(stage: Stage, root: Path, job_dir: Path) -> None:
     """Link (cached) or copy (``cache: false``) the project's outputs of ``stage`` into the
     job, with its ``reports/timing`` record, which says where they were made."""
     for rel in stage.outputs:
         src, dst = root / rel, job_dir / rel
-        _remove(dst)
+        remove_path(dst)
         dst.parent.mkdir(parents=True, exist_ok=True)
         if rel in stage.outs:
             dst.symlink_to(src, target_is_directory=src.is_dir())
@@ -419,7 +194,7 @@ def _reuse(stage: Stage, root: Path, job_dir: Path) -> None:
         else:
             shutil.copy2(src, dst)
     record = Path(TIMING_DIR) / f"{stage.tag}.json"
-    _remove(job_dir / record)
+    remove_path(job_dir / record)
     if (root / record).is_file():
         (job_dir / record).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(root / record, job_dir / record)
@@ -433,57 +208,13 @@ def _link_inputs(stage: Stage, stages: list[Stage], root: Path, job_dir: Path) -
         if (
             rel.is_absolute()
             or rel.parts[:1] != INPUT_DIR
-            or any(_overlaps(dep, out) for s in stages for out in s.outputs)
+            or any(overlaps(dep, out) for s in stages for out in s.outputs)
         ):
             continue
         src, dst = root / rel, job_dir / rel
         if src.exists() and not (dst.exists() or dst.is_symlink()):
             dst.parent.mkdir(parents=True, exist_ok=True)
             dst.symlink_to(src, target_is_directory=src.is_dir())
-
-
-def _command(cmd: str) -> str:
-    """The stage's command with a leading ``python`` replaced by this interpreter."""
-    parts = cmd.strip().split(maxsplit=1)
-    if parts and parts[0] in _PYTHON:
-        return " ".join([shlex.quote(sys.executable), *parts[1:]])
-    return cmd
-
-
-def _run_stage(stage: Stage, job_dir: Path) -> str | None:
-    """Run ``stage.cmd`` in the job directory, streaming its output to the job's log.
-
-    Returns:
-        None on success, else a one-line reason (exit status and the last line it printed).
-    """
-    for rel in stage.outputs:
-        out = job_dir / rel
-        # Never write into the project through a link; and, as DVC does, a stage writes its
-        # outputs from scratch unless they persist (resumable stages).
-        if out.is_symlink() or rel not in stage.persist:
-            _remove(out)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    last = ""
-    with subprocess.Popen(
-        _command(stage.cmd),
-        shell=True,
-        cwd=job_dir,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        bufsize=1,
-    ) as proc:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            line = line.rstrip()
-            if line:
-                log.info("[%s] %s", stage.name, line)
-                last = line
-    if proc.returncode == 0:
-        return None
-    reason = f"exit status {proc.returncode}"
-    return f"{reason}: {last}" if last else reason
 
 
 def _load_yaml(path: Path) -> Any:
@@ -500,7 +231,7 @@ def run_job(
         root: The project: ``conf/``, ``stages/``, ``dvc.yaml``, ``params.yaml``, ``data/``.
         job_dir: Where to write (Hydra's ``hydra.runtime.output_dir``); not the project.
         machine: Reuse only the project's outputs that this machine id made
-            (:func:`dexflow.provenance.machine_id`); None: wherever they were made.
+            (:func:`dexflow.pipeline.provenance.machine_id`); None: wherever they were made.
 
     Returns:
         The status written to ``job_dir/sweep_status.json``. Never raises for a failing stage
@@ -556,7 +287,7 @@ def run_job(
             _link_inputs(stage, stages, root, job_dir)
             status.status, status.error = "failed", UNFINISHED
             status.write(job_dir)  # what a killed job leaves behind
-            error = _run_stage(stage, job_dir)
+            error = run_command(stage, job_dir)
             if error is not None:
                 status.error = error
                 break
@@ -597,7 +328,7 @@ def _register_app_config(root: Path) -> None:
 
 
 def main() -> None:
-    """``dexflow-sweep`` / ``python -m dexflow.sweep``: Hydra's command line (``-m`` for a
+    """``dexflow-sweep`` / ``python -m dexflow.tools.sweep``: Hydra's command line (``-m`` for a
     multirun, ``--help``, ``--cfg job``, overrides, ``hydra/launcher=...``)."""
     import hydra
 
