@@ -207,46 +207,33 @@ def _fake_run_job(ran: list[str], failing: tuple[str, ...] = ()):
     return run_job
 
 
-def test_run_suite_reuses_finished_experiments_and_reruns_changed_or_failed_ones(
+def test_run_suite_hands_every_experiment_to_run_job_with_its_base_and_this_machine(
     tmp_path, monkeypatch
 ):
+    """Each run of the suite passes every experiment to run_job, which keeps, reuses or runs
+    each stage by its key (tests/test_sweep.py); the default reuses the project's outputs, the
+    others the default's, and only this machine's."""
+    calls: list[tuple[str, Path]] = []
     ran: list[str] = []
-    monkeypatch.setattr("dexflow.tools.sweep.run_job", _fake_run_job(ran, failing=("allegro",)))
+    fake = _fake_run_job(ran, failing=("allegro",))
+
+    def run_job(cfg, root, job_dir, machine=None):
+        calls.append((Path(job_dir).name, Path(root)))
+        return fake(cfg, root, job_dir, machine)
+
+    monkeypatch.setattr("dexflow.tools.sweep.run_job", run_job)
     root = Path(__file__).resolve().parents[1]
     names = suite_experiments("paper")
-    ablation.run_suite("paper", root, tmp_path, ["seed=3"])
-    assert ran == names
+    results = ablation.run_suite("paper", root, tmp_path, ["seed=3"])
+    assert [name for name, _ in calls] == names
+    assert dict(calls)[DEFAULT] == root
+    assert all(base == tmp_path / DEFAULT for name, base in calls if name != DEFAULT)
     assert (tmp_path / DEFAULT / "dvc.yaml").resolve() == root / "dvc.yaml"
-    ran.clear()
-    ablation.run_suite("paper", root, tmp_path, ["seed=3"])  # finished ones are not run again
-    assert ran == ["allegro"]  # the failed one is
-    ran.clear()
-    ablation.run_suite("paper", root, tmp_path, ["seed=4"])  # other params: everything again
-    assert ran == names
-    ran.clear()
-    monkeypatch.setattr(ablation, "code_digest", lambda: "other code")
-    ablation.run_suite("paper", root, tmp_path, ["seed=4"])  # other code: everything again
-    assert ran == names
-    ran.clear()
+    assert results["allegro"].status == "failed" and results[DEFAULT].status == "complete"
+    assert "seed: 3" in (tmp_path / DEFAULT / "params.yaml").read_text()
+    calls.clear()
     results = ablation.run_suite("paper", root, tmp_path, ["seed=5"], run=False)
-    assert ran == [] and results["allegro"].status == "failed"
-
-
-def test_run_suite_reruns_an_experiment_finished_on_another_machine(tmp_path, monkeypatch):
-    ran: list[str] = []
-    monkeypatch.setattr("dexflow.tools.sweep.run_job", _fake_run_job(ran))
-    question = ablation.Question("q", "Q?", ("no_temporal",), ("refine",), ("pd_mm",))
-    monkeypatch.setitem(ablation.SUITES, "tiny", (question,))
-    root = Path(__file__).resolve().parents[1]
-    ablation.run_suite("tiny", root, tmp_path)
-    assert ran == [DEFAULT, "no_temporal"]
-    ran.clear()
-    ablation.run_suite("tiny", root, tmp_path)
-    assert ran == []  # finished here before: reused
-    _record(tmp_path / DEFAULT, machine=OTHER)  # as if the default had been made elsewhere
-    results = ablation.run_suite("tiny", root, tmp_path)
-    assert ran == [DEFAULT]  # made again here; the experiment made here is kept
-    assert results[DEFAULT].machine == results["no_temporal"].machine == provenance.machine_id()
+    assert calls == [] and results["allegro"].status == "failed"
 
 
 def _two_runs(tmp_path: Path, default_machine: str, experiment_machine: str) -> str:

@@ -23,13 +23,8 @@ from dexflow.measures import (
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import MetricsParams
 from dexflow.stages.metrics import SelfCollision, chamfer_per_frame, trajectory_metrics
-from dexflow.stages.report import (
-    Experiment,
-    collect_dvc,
-    collect_multirun,
-    write_ablation,
-    write_summary,
-)
+from dexflow.stages.report import write_summary
+from dexflow.tools.experiments import Experiment, collect_dvc, collect_multirun, write_ablation
 
 
 @pytest.fixture(scope="module")

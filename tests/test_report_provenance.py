@@ -11,15 +11,10 @@ from pathlib import Path
 import pytest
 
 from dexflow.pipeline import provenance
-from dexflow.stages.report import (
-    Experiment,
-    collect_dvc,
-    collect_multirun,
-    write_ablation,
-    write_summary,
-)
+from dexflow.stages.report import write_summary
 from dexflow.stats import mean_interval, rate_interval
 from dexflow.tools.cli import main
+from dexflow.tools.experiments import Experiment, collect_dvc, collect_multirun, write_ablation
 from tests.test_metrics import _metrics_dir, _section
 
 OTHER = "0123456789ab"  # the machine id of a machine that is not this one

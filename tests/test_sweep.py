@@ -18,8 +18,10 @@ from omegaconf import OmegaConf
 from dexflow.config import compose_params
 from dexflow.errors import ConfigError
 from dexflow.pipeline import provenance
+from dexflow.pipeline.executor import record_key, run_command
 from dexflow.pipeline.registry import load_stages, upstream_stages
-from dexflow.stages.report import collect_multirun
+from dexflow.pipeline.validity import stage_key
+from dexflow.tools.experiments import collect_multirun
 from dexflow.tools.sweep import main, run_job
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -105,7 +107,7 @@ for part in key.split("."):
     value = value[part]
 if value == 0.999:
     sys.exit(f"boom: {key} = {value}")
-Path("data", name).mkdir(parents=True)
+Path("data", name).mkdir(parents=True, exist_ok=True)
 Path("data", name, "value.txt").write_text(str(value))
 Path("reports/metrics").mkdir(parents=True, exist_ok=True)
 Path("reports/metrics", name + ".json").write_text(json.dumps({"value": value}))
@@ -145,8 +147,9 @@ def toy(tmp_path) -> Path:
     (root / "stages" / "write.py").write_text(WRITE)
     (root / "dvc.yaml").write_text(TOY_DVC_YAML)
     (root / "params.yaml").write_text(OmegaConf.to_yaml(_compose(), resolve=True))
-    for stage in load_stages(root / "dvc.yaml", load_yaml(root / "params.yaml")):
-        _run(stage.cmd.replace("python", sys.executable, 1).split(), root)
+    params = load_yaml(root / "params.yaml")
+    for stage in load_stages(root / "dvc.yaml", params):  # as `dvc repro` and a sweep run them
+        assert run_command(stage, root, stage_key(stage, params, root)) is None
     return root
 
 
@@ -185,16 +188,45 @@ def test_a_changed_upstream_reruns_everything_downstream(toy, tmp_path):
     assert _metric(tmp_path / "job", "up") == 7
 
 
-def test_outputs_made_with_other_params_per_dvc_lock_are_not_reused(toy, tmp_path):
-    lock = {"schema": "2.0", "stages": {
-        "up": {"params": {"params.yaml": {"seed": 0}}},
-        "down@dis_max_m": {"params": {"params.yaml": {"contact.dis_max_m": 0.5}}},
-    }}  # fmt: skip
-    (toy / "dvc.lock").write_text(json.dumps(lock))
+def test_outputs_recorded_with_another_key_are_not_reused(toy, tmp_path):
+    """The key decides, not the params alone: outputs made from other inputs (here: a record
+    left by a run with another dis_max_m, as after a hand-edited params.yaml) are made again."""
+    params = load_yaml(toy / "params.yaml")
+    stage = next(s for s in load_stages(toy / "dvc.yaml", params) if s.name == "down@dis_max_m")
+    other = {**params, "contact": {**params["contact"], "dis_max_m": 0.5}}
+    record_key(stage, toy, stage_key(stage, other, toy))
     status = run_job(_compose(), toy, tmp_path / "job")
     assert status["reused"] == ["up", "down@dis_min_m"] and status["ran"] == ["down@dis_max_m"]
     value = (tmp_path / "job" / "data" / "down_dis_max_m" / "value.txt").read_text()
-    assert float(value) == load_yaml(toy / "params.yaml")["contact"]["dis_max_m"]
+    assert float(value) == params["contact"]["dis_max_m"]
+
+
+def test_an_upstream_rerun_that_writes_the_same_bytes_reruns_nothing_below(toy, tmp_path):
+    """A change upstream that leaves its outputs as they were (here: `up`'s command, which it
+    runs again in the job) keeps the key of what reads them: only `up` runs."""
+    (toy / "dvc.yaml").write_text(TOY_DVC_YAML.replace("write.py up seed", "write.py up  seed"))
+    status = run_job(_compose(), toy, tmp_path / "job")
+    assert status["status"] == "ok"
+    assert status["ran"] == ["up"] and status["reused"] == ["down@dis_min_m", "down@dis_max_m"]
+    # with new bytes (another seed), what reads them runs too
+    status = run_job(_compose(["seed=7"]), toy, tmp_path / "seed")
+    assert status["ran"] == ["up", "down@dis_min_m", "down@dis_max_m"]
+
+
+def test_an_experiment_run_before_in_its_folder_is_kept(toy, tmp_path):
+    job = tmp_path / "job"
+    first = run_job(_compose(["contact.dis_min_m=0.012"]), toy, job)
+    assert first["ran"] == ["down@dis_min_m"]
+    again = run_job(_compose(["contact.dis_min_m=0.012"]), toy, job)
+    assert again["kept"] == ["down@dis_min_m"] and again["ran"] == []
+    assert again["reused"] == ["up", "down@dis_max_m"]
+    changed = run_job(_compose(["contact.dis_min_m=0.013"]), toy, job)
+    assert changed["ran"] == ["down@dis_min_m"] and changed["kept"] == []
+    assert _metric(job, "down_dis_min_m") == 0.013
+    # kept only where made on the machine the suite keeps to
+    _record(job, "down_dis_min_m", machine="0123456789ab")
+    here = run_job(_compose(["contact.dis_min_m=0.013"]), toy, job, machine=provenance.machine_id())
+    assert "down@dis_min_m" in here["ran"] and here["kept"] == []
 
 
 def test_a_failing_stage_or_invalid_params_fail_the_job_without_raising(toy, tmp_path):
@@ -217,7 +249,8 @@ def _record(project: Path, tag: str, machine: str | None = None) -> None:
     """The ``reports/timing`` record a run of stage ``tag`` leaves for the project's metrics:
     made on this machine, or on ``machine`` (as another machine's run leaves it)."""
     metrics = json.loads((project / "reports" / "metrics" / f"{tag}.json").read_text())
-    record = provenance.stage_record(None, {}, {}, provenance.metrics_digest(metrics))
+    key = json.loads((project / "reports" / "timing" / f"{tag}.json").read_text())["key"]
+    record = provenance.stage_record(None, {}, {}, provenance.metrics_digest(metrics), key)
     for entry in (record["provenance"], *record["made"].values()):
         entry["machine_id"] = machine or entry["machine_id"]
     (project / "reports" / "timing").mkdir(parents=True, exist_ok=True)
@@ -233,16 +266,17 @@ def test_a_job_reuses_only_outputs_this_machine_made(toy, tmp_path):
     assert status["reused"] == ["up", "down@dis_min_m"] and status["ran"] == ["down@dis_max_m"]
     timing = tmp_path / "job" / "reports" / "timing"
     assert (timing / "up.json").read_bytes() == (toy / "reports/timing/up.json").read_bytes()
-    assert not (timing / "down_dis_max_m.json").exists()  # the toy stage writes no record
+    # the stage that ran has the key recorded (the toy stage writes no record of its own)
+    assert set(json.loads((timing / "down_dis_max_m.json").read_text())) == {"key"}
 
-    # a stage without a record (restored from git or the DVC cache) is made again, and with
-    # it everything downstream
+    # a stage without a record (restored from git or the DVC cache) is made again; what reads
+    # its outputs is reused where it wrote the same bytes (the key is the same)
     (toy / "reports" / "timing" / "up.json").unlink()
     status = run_job(_compose(), toy, tmp_path / "again", machine=here)
-    assert status["reused"] == [] and status["ran"] == ["up", "down@dis_min_m", "down@dis_max_m"]
+    assert status["reused"] == ["down@dis_min_m"] and status["ran"] == ["up", "down@dis_max_m"]
     # without a machine to keep to, wherever the outputs were made
     status = run_job(_compose(), toy, tmp_path / "any")
-    assert status["reused"] == ["up", "down@dis_min_m", "down@dis_max_m"]
+    assert status["reused"] == ["down@dis_min_m", "down@dis_max_m"] and status["ran"] == ["up"]
 
 
 def test_raw_inputs_under_data_are_linked_into_the_job(tmp_path):

@@ -14,6 +14,7 @@ so neither knows the pipeline's order, commands or outputs but from ``dvc.yaml``
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shlex
@@ -23,13 +24,23 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from dexflow.io.atomic import save_json
 from dexflow.pipeline.registry import Stage, stage_spec
 
 if TYPE_CHECKING:
     from dexflow.io.layout import Layout
     from dexflow.params import PipelineParams
 
-__all__ = ["remove_path", "run_command", "run_in_process"]
+__all__ = [
+    "TIMING_DIR",
+    "record_key",
+    "recorded_key",
+    "remove_path",
+    "run_command",
+    "run_in_process",
+]
+
+TIMING_DIR = "reports/timing"  # as dexflow.io.layout has it
 
 log = logging.getLogger("dexflow.pipeline")
 _PYTHON = ("python", "python3")
@@ -43,14 +54,40 @@ def remove_path(path: Path) -> None:
         shutil.rmtree(path)
 
 
+def recorded_key(stage: Stage, folder: Path) -> str | None:
+    """The key recorded with the outputs of ``stage`` in ``folder`` (:func:`record_key`), or
+    None."""
+    try:
+        record = json.loads((folder / TIMING_DIR / f"{stage.tag}.json").read_text("utf-8"))
+    except (OSError, ValueError):
+        return None
+    found = record.get("key") if isinstance(record, dict) else None
+    return found if isinstance(found, str) else None
+
+
+def record_key(stage: Stage, folder: Path, key: str) -> None:
+    """Record ``key`` (:mod:`dexflow.pipeline.validity`) with the outputs ``stage`` made in
+    ``folder``, in its ``reports/timing/<tag>.json`` (a dexflow stage's runner has written it
+    there already; a command of another kind gets a record holding the key alone)."""
+    path = folder / TIMING_DIR / f"{stage.tag}.json"
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        record = {}
+    record = record if isinstance(record, dict) else {}
+    if record.get("key") != key:
+        save_json(path, {**record, "key": key})
+
+
 def run_in_process(stage: Stage, params: PipelineParams, layout: Layout) -> dict:
-    """Run ``stage`` (``name`` or ``name@item``) in this process, as its script would:
-    :func:`dexflow.pipeline.runner.run_stage` of its ``STAGE`` with the ``foreach`` item as the
-    argument. Returns the stage's summary (timing included)."""
+    """Run ``stage`` in this process, as its script would: :func:`dexflow.pipeline.runner.run_stage`
+    of its ``STAGE`` with the script's arguments in ``cmd`` (``python stages/simulate.py
+    refine`` -> ``("refine",)``). Returns the stage's summary (timing included)."""
     from dexflow.pipeline.runner import run_stage
 
-    _, _, item = stage.name.partition("@")
-    return run_stage(stage_spec(stage.name), params, layout, (item,) if item else ())
+    words = shlex.split(stage.cmd)
+    script = next((i for i, w in enumerate(words) if w.endswith(".py")), len(words))
+    return run_stage(stage_spec(stage.name), params, layout, tuple(words[script + 1 :]))
 
 
 def _command(cmd: str) -> str:
@@ -61,8 +98,10 @@ def _command(cmd: str) -> str:
     return cmd
 
 
-def run_command(stage: Stage, folder: Path) -> str | None:
-    """Run ``stage.cmd`` in the job directory, streaming its output to the job's log.
+def run_command(stage: Stage, folder: Path, key: str | None = None) -> str | None:
+    """Run ``stage.cmd`` in ``folder`` (a project or a sweep job), streaming its output to the
+    log; on success record ``key`` (the stage's key there, computed before it ran) with its
+    outputs (:func:`record_key`).
 
     Returns:
         None on success, else a one-line reason (exit status and the last line it printed).
@@ -92,6 +131,8 @@ def run_command(stage: Stage, folder: Path) -> str | None:
                 log.info("[%s] %s", stage.name, line)
                 last = line
     if proc.returncode == 0:
+        if key is not None:
+            record_key(stage, folder, key)
         return None
     reason = f"exit status {proc.returncode}"
     return f"{reason}: {last}" if last else reason

@@ -24,6 +24,7 @@ DVC output; :func:`stage_record`, written by :mod:`dexflow.pipeline.runner`)::
      "provenance": {"commit": ..., "dirty": false, "machine_id": ..., "machine": {...},
                     "data": {"name": "demo", "root": "data/demo", "sequences": 24, "frames": 2713}},
      "metrics_digest": "<digest of what reports/metrics/<tag>.json holds>" | null,
+     "key": "<the key of the outputs the run made (dexflow.pipeline.validity)>" | null,
      "made": {"<metrics digest>": {"machine_id": ..., "commit": ..., "dirty": ...}, ...}}
 
 ``made`` keeps the last :data:`MADE_KEPT` metrics the stage wrote in this project, so that a
@@ -221,6 +222,7 @@ def stage_record(
     timing: Mapping[str, Any],
     data: Mapping[str, Any] | None,
     digest: str | None,
+    key: str | None = None,
 ) -> dict[str, Any]:
     """The ``reports/timing/<tag>.json`` of a stage run (format in the module docstring).
 
@@ -229,6 +231,8 @@ def stage_record(
         timing: The stage's wall-clock figures (the runner's summary ``timing``).
         data: What the stage ran on (``name``, ``root``, ``sequences``, ``frames``).
         digest: :func:`metrics_digest` of the metrics it wrote, None if it writes none.
+        key: The key of the outputs it made (:mod:`dexflow.pipeline.validity`), None where
+            unknown.
     """
     here = current(data)
     made = dict((previous or {}).get("made") or {})
@@ -236,7 +240,7 @@ def stage_record(
         made.pop(digest, None)  # re-inserted last: the most recent maker
         made[digest] = {k: here[k] for k in ("machine_id", "commit", "dirty")}
     kept = dict(list(made.items())[-MADE_KEPT:])
-    return {**timing, "provenance": here, "metrics_digest": digest, "made": kept}
+    return {**timing, "provenance": here, "metrics_digest": digest, "key": key, "made": kept}
 
 
 def read_records(timing_dir: str | Path | None) -> dict[str, dict]:

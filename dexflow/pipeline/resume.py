@@ -2,9 +2,9 @@
 
 A stage's output directory holds, while the stage runs, two kinds of bookkeeping:
 
-- ``.stage.json``: the fingerprint of everything that determines the outputs: the stage's label
-  (with its method), its params sections as canonical JSON, a digest of dexflow's own files
-  (code) and a digest of the inputs every item shares (e.g. ``objects/`` of scale_align).
+- ``.stage.json``: the stage's label (with its method) and the key of its outputs
+  (:mod:`dexflow.pipeline.validity`: its command, params and the bytes of every dep), the one
+  key by which every runner decides whether outputs are still valid.
 - ``.done/<group>/<name>.json``: one record per completed item, written after its outputs: the
   digest of the item's input files (their bytes, not their size or time) and the value the item
   returned (its summary entry).
@@ -44,7 +44,6 @@ Example (a stage runner)::
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import json
 import logging
@@ -60,7 +59,9 @@ import numpy as np
 from dexflow.errors import IncompleteStageError
 from dexflow.io.atomic import atomic_path, save_json
 from dexflow.io.layout import StageDir, stray_files
+from dexflow.pipeline import validity
 from dexflow.pipeline.parallel import ItemResult, map_items
+from dexflow.pipeline.validity import file_digest
 
 if TYPE_CHECKING:
     from dexflow.params import RunParams
@@ -71,8 +72,6 @@ __all__ = [
     "IncompleteStageError",
     "StageOutput",
     "Tally",
-    "code_digest",
-    "file_digest",
 ]
 
 STAGE_FILE = ".stage.json"
@@ -81,48 +80,16 @@ _MISSING = "-"
 log = logging.getLogger(__name__)
 
 
-def file_digest(path: str | Path) -> str:
-    """sha1 of a file's bytes."""
-    digest = hashlib.sha1()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
-def _files_digest(paths: Iterable[Path], relative_to: Path | None = None) -> str:
-    """sha1 over the given files' names (relative) and bytes; a missing file counts as such."""
+def _files_digest(paths: Iterable[Path]) -> str:
+    """sha1 over the given files' bytes (a missing file counts as such): an item's inputs."""
     digest = hashlib.sha1()
     for path in paths:
-        if relative_to is not None:
-            digest.update(path.relative_to(relative_to).as_posix().encode() + b"\0")
         digest.update((file_digest(path) if path.is_file() else _MISSING).encode() + b"\0")
     return digest.hexdigest()
 
 
-@functools.lru_cache(maxsize=1)
-def code_digest() -> str:
-    """Digest of every file of the dexflow package (code and assets), excluding caches."""
-    package = Path(__file__).resolve().parents[1]  # the dexflow package
-    files = sorted(p for p in package.rglob("*") if p.is_file() and "__pycache__" not in p.parts)
-    return _files_digest(files, relative_to=package)
-
-
 def _files_size(paths: Iterable[Path]) -> int:
     return sum(p.stat().st_size for p in paths if p.is_file())
-
-
-def _shared_digest(root: Path) -> str:
-    """Digest of the files below ``root`` that every item may read: all but ``sequences/``,
-    the summary and dot-files (bookkeeping, temporaries)."""
-    files = sorted(
-        p
-        for p in root.rglob("*")
-        if p.is_file()
-        and p.relative_to(root).parts[0] not in ("sequences", "summary.json")
-        and not any(part.startswith(".") for part in p.relative_to(root).parts)
-    )
-    return _files_digest(files, relative_to=root)
 
 
 def _plain(obj: Any) -> Any:
@@ -205,13 +172,16 @@ class StageOutput:
         self.retry: dict[str, str] = {}  # items that failed for a reason other than their input
 
     def fingerprint(self) -> dict:
-        """What ``.stage.json`` holds: deterministic, no paths, no times."""
-        return {
-            "stage": self.stage,
-            "params": self.params,
-            "code": code_digest(),
-            "shared_inputs": [_shared_digest(root) for root in self.inputs],
-        }
+        """What ``.stage.json`` holds: the stage's label and the key of its outputs
+        (:mod:`dexflow.pipeline.validity`): the one the stage runner computed from the registry
+        (:data:`~dexflow.pipeline.validity.RUNNING_KEY`), else one of this stage's params, the
+        dexflow package and its inputs' bytes. Deterministic: no paths, no times."""
+        running = validity.RUNNING_KEY.get()
+        if running is None:
+            deps = {"dexflow": validity.path_digest(validity.CHECKOUT / "dexflow")}
+            deps |= {f"input {i}": validity.path_digest(r) for i, r in enumerate(self.inputs)}
+            running = validity.key(self.stage, self.params, deps)
+        return {"stage": self.stage, "key": running}
 
     def start(self) -> list[Path]:
         """List the sequence files of the first input; empty the output directory unless it

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import dataclasses
 import fcntl
 import hashlib
 import json
@@ -53,7 +54,8 @@ from dexflow.errors import DexflowError, IncompleteStageError
 from dexflow.io.atomic import save_json
 from dexflow.io.layout import Layout
 from dexflow.params import PipelineParams
-from dexflow.pipeline import provenance
+from dexflow.pipeline import provenance, validity
+from dexflow.pipeline.registry import load_stages, pipeline_file
 
 __all__ = ["StageBusyError", "StageSpec", "run_stage", "stage_lock", "stage_main"]
 
@@ -88,7 +90,12 @@ class StageSpec:
 def run_stage(spec: StageSpec, params: PipelineParams, layout: Layout, args=()) -> dict:
     """Run a stage and write its metrics and timing files (the timing file records where it
     ran, every run); returns the summary (timing included)."""
-    summary = spec.run(params, layout, *args)
+    key = stage_key_of(spec.name, tuple(args), params, layout.root)
+    running = validity.RUNNING_KEY.set(key)
+    try:
+        summary = spec.run(params, layout, *args)
+    finally:
+        validity.RUNNING_KEY.reset(running)
     tag = spec.tag(tuple(args))
     keys = spec.metric_keys
     if keys is None:
@@ -100,7 +107,7 @@ def run_stage(spec: StageSpec, params: PipelineParams, layout: Layout, args=()) 
         save_json(layout.stage_metrics(tag), {k: summary[k] for k in keys if k in summary})
         written = json.loads(layout.stage_metrics(tag).read_text(encoding="utf-8"))
         digest = provenance.metrics_digest(written)
-    _record_timing(layout.timing(tag), summary, params, digest)
+    _record_timing(layout.timing(tag), summary, params, digest, key)
     label = "@".join([spec.name, *args])
     log.info("%s: %s", label, spec.describe(summary))
     own = {n: e for n, e in _sequence_entries(summary).items() if e.get("status") != "ok"}
@@ -119,9 +126,29 @@ def run_stage(spec: StageSpec, params: PipelineParams, layout: Layout, args=()) 
     return summary
 
 
-def _record_timing(path: Path, summary: dict, params: PipelineParams, digest: str | None) -> None:
-    """Write the stage's ``reports/timing`` record: its speeds and where it ran (commit,
-    machine, data; :func:`dexflow.pipeline.provenance.stage_record`)."""
+def stage_key_of(
+    name: str, args: tuple[str, ...], params: PipelineParams, folder: Path
+) -> str | None:
+    """The key (:func:`dexflow.pipeline.validity.stage_key`) of stage ``name`` (its ``foreach``
+    item in ``args``) of dexflow's ``dvc.yaml`` run in ``folder`` with ``params``; None where
+    ``dvc.yaml`` has no such stage (a stage run outside the pipeline, e.g. the demo of a project
+    whose data is its own)."""
+    stages = load_stages(pipeline_file(), dataclasses.asdict(params))
+    matching = [
+        s for s in stages
+        if s.name.partition("@")[0] == name and (not args or s.name.partition("@")[2] == args[0])
+    ]  # fmt: skip
+    if len(matching) != 1:
+        return None
+    return validity.stage_key(matching[0], dataclasses.asdict(params), folder)
+
+
+def _record_timing(
+    path: Path, summary: dict, params: PipelineParams, digest: str | None, key: str | None
+) -> None:
+    """Write the stage's ``reports/timing`` record: its speeds, where it ran (commit, machine,
+    data; :func:`dexflow.pipeline.provenance.stage_record`) and the key of the outputs it made
+    (:mod:`dexflow.pipeline.validity`)."""
     try:
         previous = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
@@ -134,7 +161,7 @@ def _record_timing(path: Path, summary: dict, params: PipelineParams, digest: st
         "frames": summary.get("num_frames"),
     }
     timing = summary.get("timing") or {}
-    save_json(path, provenance.stage_record(previous, timing, data, digest))
+    save_json(path, provenance.stage_record(previous, timing, data, digest, key))
 
 
 # Per-item entries of a summary (summary.json holds them; the DVC metrics do not), and the

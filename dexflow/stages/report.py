@@ -1,15 +1,13 @@
-"""Reports generated from the metrics: the paper-style summary and the ablation across experiments.
+"""Stage report: the paper-style summary of one pipeline run, generated from its metrics.
 
 - :func:`write_summary` -> ``reports/summary.md`` (+ PNG figures): the paper's Table II/III layout
   (baseline vs DexFlow vs DexFlow + refinement) beside the published numbers, each rate and mean
   over sequences with its 95 % interval (:mod:`dexflow.stats`), contact quality, and a
   per-object breakdown.
-- :func:`write_ablation` -> ``reports/sweep.md`` (+ PNG figures): every experiment found in
-  ``dvc exp show --json`` and/or Hydra multirun directories, one table and one plot per swept
-  parameter, best values in bold. Failed or incomplete experiments are listed, never dropped;
-  runs of another machine than the one compared are listed, not compared.
 
-Both open with their provenance (:mod:`dexflow.pipeline.provenance`): the commit and machine they were
+The comparison of experiments (``reports/sweep.md``) is :mod:`dexflow.tools.experiments`.
+
+It opens with their provenance (:mod:`dexflow.pipeline.provenance`): the commit and machine they were
 written on, the data, and the machine(s) the numbers were made on.
 """
 
@@ -17,7 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,13 +26,14 @@ from dexflow.pipeline import provenance
 from dexflow.pipeline.runner import StageSpec
 
 __all__ = [
+    "METHOD_LABELS",
+    "METRICS",
     "PAPER",
     "STAGE",
-    "Experiment",
-    "collect_dvc",
-    "collect_multirun",
+    "cell",
+    "pyplot",
     "run_report",
-    "write_ablation",
+    "save_figure",
     "write_project_summary",
     "write_summary",
 ]
@@ -82,13 +80,13 @@ TABLE_III = ("velocity_kl", "rms_acc", "keypoint_error_mm", "fingertip_error_mm"
              "fingertip_error_surface_mm")  # fmt: skip
 
 
-def _cell(value, digits: int = 2) -> str:
+def cell(value, digits: int = 2) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "—"
     return f"{value:.{digits}f}"
 
 
-def _plt():
+def pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
@@ -98,7 +96,7 @@ def _plt():
     return plt
 
 
-def _save(fig, path: Path) -> None:
+def save_figure(fig, path: Path) -> None:
     from dexflow.io.atomic import atomic_path
 
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -267,15 +265,15 @@ def _contact_rows(contact: dict, metrics: dict) -> list[str]:
 
     def percent(key: str) -> str:
         value = contact.get(key)
-        return "—" if value is None else _cell(100 * value, 0) + " %"
+        return "—" if value is None else cell(100 * value, 0) + " %"
 
     lines = [
         "| state changes per finger per second, or the share removed | value | paper |",
         "|---|---|---|",
         f"| single threshold on the baseline retargeting | "
-        f"{_cell(contact.get('flicker_baseline_threshold'))} | |",
+        f"{cell(contact.get('flicker_baseline_threshold'))} | |",
         f"| DexFlow: dual threshold and inference on its retargeting | "
-        f"{_cell(contact.get('flicker_dexflow'))} | |",
+        f"{cell(contact.get('flicker_dexflow'))} | |",
         f"| removed, DexFlow vs the baseline (the paper's comparison) | "
         f"{percent('flicker_reduction_vs_baseline')} | 68 % |",
         f"| removed by the dual threshold vs a single one (same trajectory) | "
@@ -285,7 +283,7 @@ def _contact_rows(contact: dict, metrics: dict) -> list[str]:
     ]
     for key in ("precision", "recall"):
         if f"contact.{key}" in metrics:
-            lines.append(f"| {key} vs ground truth (demo) | {_cell(metrics[f'contact.{key}'])} | |")
+            lines.append(f"| {key} vs ground truth (demo) | {cell(metrics[f'contact.{key}'])} | |")
     return lines
 
 
@@ -304,11 +302,11 @@ def _replay_section(stage: dict, dirs: dict, figures_dir: Path, rel: Path) -> li
     for m, r in found.items():
         cells = [
             str(r.get("num_scored", r.get("num_replayed", 0))), _not_scored(r),
-            _cell(r.get("success_rate"), 1),
-            _cell(r.get("spider_success_rate"), 1), _cell(r.get("carried_rate"), 1),
-            _cell(100 * r.get("position_error_mean_m", math.nan), 1),
-            _cell(r.get("rotation_error_mean_rad")), _cell(100 * r.get("held_fraction", math.nan), 0),
-            _cell(r.get("lost_rate"), 0), _cell(100 * r.get("static_error_mean_m", math.nan), 1),
+            cell(r.get("success_rate"), 1),
+            cell(r.get("spider_success_rate"), 1), cell(r.get("carried_rate"), 1),
+            cell(100 * r.get("position_error_mean_m", math.nan), 1),
+            cell(r.get("rotation_error_mean_rad")), cell(100 * r.get("held_fraction", math.nan), 0),
+            cell(r.get("lost_rate"), 0), cell(100 * r.get("static_error_mean_m", math.nan), 1),
         ]  # fmt: skip
         lines.append(f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |")
     lines += [
@@ -368,7 +366,7 @@ def _replay_figure(dirs: dict, figures_dir: Path) -> str | None:
             curves[m] = np.nanmean(padded, axis=0)
     if not curves:
         return None
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 3.5))
     colors = dict(zip(METHOD_LABELS, ["#999999", "#4c72b0", "#55a868"], strict=True))
     for m, curve in curves.items():
@@ -377,7 +375,7 @@ def _replay_figure(dirs: dict, figures_dir: Path) -> str | None:
     ax.set_ylabel("object position error (cm)")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    _save(fig, figures_dir / "summary_replay.png")
+    save_figure(fig, figures_dir / "summary_replay.png")
     plt.close("all")
     return "summary_replay.png"
 
@@ -623,7 +621,7 @@ def _method_table(metrics: dict, keys, paper: bool) -> list[str]:
     head = "| method | " + " | ".join(METRICS[k][0] for k in keys) + " |"
     lines = [head, "|---" * (len(keys) + 1) + "|"]
     for method, label in METHOD_LABELS.items():
-        cells = [_cell(metrics.get(f"{method}.{k}"), 3 if k == "fvr" else 2) for k in keys]
+        cells = [cell(metrics.get(f"{method}.{k}"), 3 if k == "fvr" else 2) for k in keys]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     if paper:
         for method, label in (("baseline", "paper: DexRetarget"), ("refine", "paper: DexFlow")):
@@ -671,9 +669,9 @@ def _engines_section(stage: dict) -> list[str]:
     ]
     for method, sim in simulated.items():
         for engine in engines:
-            cells = [_cell(sim.get(f"{k}_{engine}")) for k in ("ssr_paper", "ssr_bench")]
+            cells = [cell(sim.get(f"{k}_{engine}")) for k in ("ssr_paper", "ssr_bench")]
             flipped = sim.get(f"flipped_{engine}")
-            cells.append("—" if flipped is None else _cell(100 * flipped, 1))
+            cells.append("—" if flipped is None else cell(100 * flipped, 1))
             lines.append(f"| {METHOD_LABELS[method]} | {engine} | " + " | ".join(cells) + " |")
     if len(engines) > 1:
         lines += [
@@ -709,15 +707,15 @@ def _simulation_table(stage: dict) -> list[str]:
         if not sim:
             lines.append(f"| {label} |" + " — |" * 11)
             continue
-        cells = [_cell(sim.get(k)) for k in ("ssr", "ssr_paper", "ssr_bench")]
-        cells.append(_cell(_criteria_agreement(sim), 0))
-        cells += [str(sim.get("frames_evaluated", "—")), _cell(sim.get("penetration_mean_mm"))]
-        cells.append(_cell(100 * sim["over_tolerance"], 0) if "over_tolerance" in sim else "—")
-        cells.append(_cell(sim.get("parts_penetration_mean_mm")))
+        cells = [cell(sim.get(k)) for k in ("ssr", "ssr_paper", "ssr_bench")]
+        cells.append(cell(_criteria_agreement(sim), 0))
+        cells += [str(sim.get("frames_evaluated", "—")), cell(sim.get("penetration_mean_mm"))]
+        cells.append(cell(100 * sim["over_tolerance"], 0) if "over_tolerance" in sim else "—")
+        cells.append(cell(sim.get("parts_penetration_mean_mm")))
         lost = sim.get("lost_closing")
-        cells.append("—" if lost is None else _cell(100 * lost, 0))
-        cells.append(_cell(sim.get("imbalance_mean")))
-        cells.append(_cell(sim.get("contact_imbalance_mean")))
+        cells.append("—" if lost is None else cell(100 * lost, 0))
+        cells.append(cell(sim.get("imbalance_mean")))
+        cells.append(cell(sim.get("contact_imbalance_mean")))
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     return lines
 
@@ -747,7 +745,7 @@ def _per_object(table) -> list[str]:
         for k in keys:
             for m in METHOD_LABELS:
                 value = grouped[k].get((obj, m), float("nan"))
-                cells.append(_cell(float(value), 1 if k == "ssr" else 2))
+                cells.append(cell(float(value), 1 if k == "ssr" else 2))
         lines.append(f"| {obj} | {int(counts.get(obj, 0))} | " + " | ".join(cells) + " |")
     return lines
 
@@ -755,7 +753,7 @@ def _per_object(table) -> list[str]:
 def _figures(metrics: dict, table, plots_dir: Path, figures_dir: Path) -> list[tuple[str, str]]:
     import pandas as pd
 
-    plt = _plt()
+    plt = pyplot()
     out = []
     keys = [k for k in (*TABLE_II, *TABLE_III) if any(f"{m}.{k}" in metrics for m in METHOD_LABELS)]
     fig, axes = plt.subplots(2, (len(keys) + 1) // 2, figsize=(3 * ((len(keys) + 1) // 2), 6))
@@ -767,7 +765,7 @@ def _figures(metrics: dict, table, plots_dir: Path, figures_dir: Path) -> list[t
     for ax in np.ravel(axes)[len(keys) :]:
         ax.axis("off")
     fig.tight_layout()
-    _save(fig, figures_dir / "summary_methods.png")
+    save_figure(fig, figures_dir / "summary_methods.png")
     out.append(("summary_methods.png", "Every metric per method"))
 
     if len(table):
@@ -777,7 +775,7 @@ def _figures(metrics: dict, table, plots_dir: Path, figures_dir: Path) -> list[t
         pivot.plot.bar(ax=ax, color=["#999999", "#4c72b0", "#55a868"], rot=45, fontsize=8)
         ax.set_ylabel("penetration depth (mm)")
         fig.tight_layout()
-        _save(fig, figures_dir / "summary_objects_pd.png")
+        save_figure(fig, figures_dir / "summary_objects_pd.png")
         out.append(("summary_objects_pd.png", "Penetration depth per object and method"))
 
     error, pen = plots_dir / "keypoint_error.csv", plots_dir / "penetration.csv"
@@ -794,425 +792,10 @@ def _figures(metrics: dict, table, plots_dir: Path, figures_dir: Path) -> list[t
         axes[0].legend(fontsize=8)
         axes[1].set_xlabel(f"time (s), sequence {example}")
         fig.tight_layout()
-        _save(fig, figures_dir / "summary_timeline.png")
+        save_figure(fig, figures_dir / "summary_timeline.png")
         out.append(("summary_timeline.png", f"Keypoint error and penetration over {example}"))
     plt.close("all")
     return out
-
-
-# --------------------------------------------------------------------------------- ablation
-
-
-@dataclass
-class Experiment:
-    """One run of the pipeline: its parameters (flat, dotted keys), metrics (flat) and, per
-    stage, who made its outputs (:func:`dexflow.pipeline.provenance.made_by`: machine, commit; None
-    where not recorded)."""
-
-    name: str
-    source: str
-    params: dict[str, object] = field(default_factory=dict)
-    metrics: dict[str, float] = field(default_factory=dict)
-    error: str | None = None
-    stages: dict[str, dict | None] = field(default_factory=dict)
-
-    @property
-    def machine(self) -> str | None:
-        """The machine id that made every stage's outputs; None if one is not recorded or
-        several machines made them."""
-        return provenance.machine_of(self.stages)
-
-    def machine_text(self) -> str:
-        """The machine id, ``not recorded`` or ``mixed: a, b``."""
-        if self.machine:
-            return self.machine
-        ids = sorted({str(s["machine_id"]) for s in self.stages.values() if s})
-        if len(ids) > 1:
-            return "mixed: " + ", ".join(ids)
-        unknown = sorted(tag for tag, s in self.stages.items() if not s)
-        return "not recorded" + (f" ({', '.join(unknown)})" if ids and unknown else "")
-
-
-def _flatten(tree, prefix: str = "") -> dict:
-    out = {}
-    if isinstance(tree, dict):
-        for key, value in tree.items():
-            out.update(_flatten(value, f"{prefix}{key}."))
-    elif isinstance(tree, list):
-        out[prefix[:-1]] = json.dumps(tree)
-    else:
-        out[prefix[:-1]] = tree
-    return out
-
-
-def _metrics_only(files: dict) -> dict[str, float]:
-    """Flat numeric metrics from ``{file: {"data": {...}}}`` (DVC) or ``{file: {...}}``."""
-    out = {}
-    for path, content in sorted(files.items()):
-        data = content.get("data", content) if isinstance(content, dict) else {}
-        prefix = "" if Path(path).stem == "metrics" else f"{Path(path).stem}."
-        for key, value in _flatten(data).items():
-            if isinstance(value, (int, float)) and not isinstance(value, bool):
-                out[prefix + key] = float(value)
-    return out
-
-
-def collect_dvc(show: list | dict, timing_dir: str | Path | None = None) -> list[Experiment]:
-    """Experiments from the output of ``dvc exp show --json`` (DVC 3).
-
-    Args:
-        show: The parsed output.
-        timing_dir: The workspace's ``reports/timing``: the machine that made each stage's
-            metrics is known where its record lists their digest (the stages that ran in this
-            workspace, ``dvc exp run`` ones included); None: no machine is known.
-    """
-    records = provenance.read_records(timing_dir)
-    found: list[Experiment] = []
-
-    def visit(node, name_hint: str, state: str | None = None) -> None:
-        if isinstance(node, list):
-            for item in node:
-                visit(item, name_hint, state)
-            return
-        if not isinstance(node, dict):
-            return
-        executor = node.get("executor")
-        if isinstance(executor, dict) and executor.get("state"):
-            state = executor["state"]  # queued, running, success, failed
-        data = node.get("data")
-        if isinstance(data, dict) and ("params" in data or "metrics" in data):
-            name = node.get("name") or data.get("name") or node.get("rev") or name_hint
-            params = {}
-            for content in (data.get("params") or {}).values():
-                params.update(_flatten(content.get("data", {})))
-            files = data.get("metrics") or {}
-            metrics = _metrics_only(files)
-            stages = {
-                Path(path).stem: provenance.made_by(
-                    content.get("data", content), records.get(Path(path).stem)
-                )
-                for path, content in sorted(files.items())
-                if isinstance(content, dict)
-            }
-            error = node.get("error") or data.get("error")
-            if isinstance(error, dict):
-                error = error.get("msg") or json.dumps(error)
-            if error is None and state not in (None, "success"):
-                error = f"{state}, not finished (its metrics would be the baseline's)"
-            found.append(Experiment(str(name), "dvc", params, metrics, error, stages))
-        for key in ("experiments", "revs"):
-            if key in node:
-                visit(node[key], name_hint, state)
-
-    visit(show, "workspace")
-    unique, seen, contents = [], set(), {}
-    for exp in found:
-        key = json.dumps([exp.params, exp.metrics], sort_keys=True, default=str)
-        if exp.name in seen:
-            continue
-        if key in contents and exp.metrics:  # the workspace holding an experiment's results
-            if contents[key].name == "workspace":
-                unique[unique.index(contents[key])] = exp
-                contents[key] = exp
-            continue
-        seen.add(exp.name)
-        contents[key] = exp
-        unique.append(exp)
-    return unique
-
-
-def collect_multirun(root) -> list[Experiment]:
-    """Experiments from a Hydra multirun directory (one job per subdirectory holding
-    ``params.yaml``, ``reports/metrics/*.json``, ``reports/timing/*.json`` (where each stage
-    ran; :func:`dexflow.tools.sweep.run_job` copies the records of the stages it reuses) and
-    ``sweep_status.json``)."""
-    import yaml
-
-    root = Path(root)
-    found = []
-    for job in sorted(p.parent for p in root.rglob("params.yaml")):
-        params = _flatten(yaml.safe_load((job / "params.yaml").read_text()) or {})
-        files = {
-            str(p.relative_to(job)): json.loads(p.read_text())
-            for p in sorted((job / "reports" / "metrics").glob("*.json"))
-        }
-        status_file = job / "sweep_status.json"
-        status = json.loads(status_file.read_text()) if status_file.is_file() else {}
-        error = None
-        if status.get("status") not in (None, "ok"):
-            error = f"stage {status.get('stage')}: {status.get('error')}"
-        name = str(job.relative_to(root)) if job != root else root.name
-        stages = provenance.stages_of(job / "reports" / "metrics", job / "reports" / "timing")
-        found.append(Experiment(name, "multirun", params, _metrics_only(files), error, stages))
-    return found
-
-
-def _swept(experiments: list[Experiment]) -> list[str]:
-    keys = sorted({k for e in experiments for k in e.params})
-    return [
-        k
-        for k in keys
-        if len({_canon(e.params.get(k)) for e in experiments}) > 1
-        and not k.startswith(("data.", "hydra."))
-    ]
-
-
-def _canon(value) -> str:
-    return json.dumps(value, sort_keys=True, default=str)
-
-
-@dataclass
-class _Factor:
-    """Swept keys that vary together (every ``hand.*`` key when the hand is swept)."""
-
-    name: str
-    keys: list[str]
-
-    def value(self, experiment: Experiment) -> str:
-        return _canon(experiment.params.get(self.name))
-
-
-def _factors(experiments: list[Experiment]) -> list[_Factor]:
-    """The swept keys grouped into factors: keys that split the experiments the same way are
-    one factor, named by its most telling key (``*.name``, then the shortest)."""
-    by_split: dict[tuple, list[str]] = {}
-    for key in _swept(experiments):
-        labels: dict[str, int] = {}
-        split = tuple(
-            labels.setdefault(_canon(e.params.get(key)), len(labels)) for e in experiments
-        )
-        by_split.setdefault(split, []).append(key)
-    factors = []
-    for keys in by_split.values():
-        name = min(keys, key=lambda k: (not k.endswith(".name"), k.count("."), k))
-        factors.append(_Factor(name, [name, *(k for k in keys if k != name)]))
-    return sorted(factors, key=lambda f: f.name)
-
-
-def _reference(factor: _Factor, experiments: list[Experiment]) -> str:
-    """The value most experiments have (ties: the first experiment's)."""
-    values = [factor.value(e) for e in experiments]
-    return max(dict.fromkeys(values), key=values.count)
-
-
-def write_ablation(
-    experiments: list[Experiment],
-    out_md,
-    figures_dir,
-    metrics=None,
-    machine: str | None = None,
-) -> Path:
-    """Write the ablation report: per swept parameter a table (one row per value) and a plot of
-    each metric against it; the best value per metric in bold.
-
-    With ``machine``, only experiments whose every stage was made on that machine are compared
-    (the reference values' runs included): one made elsewhere, or without a record of where
-    (:attr:`Experiment.machine`), is listed as not compared, since a difference between
-    machines would read as the parameter's. Without, every complete experiment is compared and
-    the report says whether they are known to come from one machine.
-
-    Parameters that change together (all ``hand.*`` keys of ``hand=allegro``) are one factor,
-    shown once under its most telling key. With several factors swept, each factor's table holds
-    the experiments where every other factor is at its reference value (the value most
-    experiments share), one factor at a time; the closing table lists every experiment.
-
-    Args:
-        experiments: From :func:`collect_dvc` and/or :func:`collect_multirun`.
-        out_md: The Markdown file.
-        figures_dir: Where the PNGs go.
-        metrics: Flat metric keys to show; default: the paper's metrics for every method.
-        machine: The machine id (:func:`dexflow.pipeline.provenance.machine_id`) whose runs are
-            compared; None: every complete run.
-    """
-    from dexflow.io.atomic import atomic_path
-
-    out_md, figures_dir = Path(out_md), Path(figures_dir)
-    finished = [e for e in experiments if e.error is None and e.metrics]
-    complete = [e for e in finished if machine is None or e.machine == machine]
-    elsewhere = [e for e in finished if e not in complete]
-    broken = [e for e in experiments if e not in finished]
-    if metrics is None:
-        metrics = [
-            f"{m}.{k}"
-            for m in METHOD_LABELS
-            for k in ("ssr", "pd_mm", "cd_mm", "keypoint_error_mm")
-        ] + ["retarget.rms_acc", "retarget.velocity_kl", "contact.flicker_final"]
-    shown = [m for m in metrics if any(m in e.metrics for e in complete)]
-    lines = [
-        "# dexflow sweep report",
-        "",
-        f"Generated by `dexflow report ablation` from {len(experiments)} experiments "
-        f"({len(complete)} compared, {len(elsewhere)} not compared: made on another machine "
-        f"or not recorded where, {len(broken)} failed or without metrics). "
-        "Best value per column in **bold**; ↑ higher is better, ↓ lower.",
-        "",
-        "Written by:",
-        "",
-        *provenance.markdown(None, _experiments_data(complete)),
-        "",
-        _machine_statement(complete, elsewhere, machine),
-        "",
-    ]
-    factors = _factors(complete)
-    if not factors:
-        lines += ["No parameter differs between the complete experiments.", ""]
-    reference = {f.name: _reference(f, complete) for f in factors}
-    plt = _plt()
-    for factor in factors:
-        others = [f for f in factors if f is not factor]
-        members = [e for e in complete if all(f.value(e) == reference[f.name] for f in others)]
-        held = bool(others)
-        if len({factor.value(e) for e in members}) < 2:  # never swept alone: show every run
-            members, held = complete, False
-        groups: dict[str, list[Experiment]] = {}
-        for e in members:
-            groups.setdefault(factor.value(e), []).append(e)
-        values = sorted(groups, key=_sort_key)
-        table = {m: [_mean([e.metrics.get(m) for e in groups[v]]) for v in values] for m in shown}
-        lines += [f"## `{factor.name}`", ""]
-        if len(factor.keys) > 1:
-            also = ", ".join(f"`{k}`" for k in factor.keys[1:6])
-            more = f" and {len(factor.keys) - 6} more" if len(factor.keys) > 6 else ""
-            lines += [f"Changes together with {also}{more}.", ""]
-        if held:
-            at = ", ".join(f"`{f.name}` = {json.loads(reference[f.name])}" for f in others)
-            lines += [f"Other swept parameters held at {at}.", ""]
-        elif others:
-            lines += ["Other swept parameters vary within the rows (means over runs).", ""]
-        lines += _ablation_table(values, groups, table, shown)
-        if shown:
-            name = "ablation_" + "".join(c if c.isalnum() else "_" for c in factor.name) + ".png"
-            _ablation_plot(plt, factor.name, values, table, shown, figures_dir / name)
-            rel = figures_dir.relative_to(out_md.parent) if figures_dir.is_relative_to(
-                out_md.parent) else figures_dir  # fmt: skip
-            lines += ["", f"![{factor.name}]({rel / name})"]
-        lines.append("")
-    plt.close("all")
-    overview = [m for m in ("refine.ssr", "refine.pd_mm", "retarget.keypoint_error_mm")
-                if m in shown]  # fmt: skip
-    lines += [
-        "## Experiments",
-        "",
-        "| experiment | source | status | swept values | "
-        + " | ".join(_metric_label(m) for m in overview)
-        + " | machine |",
-        "|---" * (5 + len(overview)) + "|",
-    ]
-    for e in experiments:
-        if e in complete:
-            status = "ok"
-        elif e in elsewhere:
-            status = "not compared: " + (
-                f"made on machine {e.machine}" if e.machine else "not recorded on which machine"
-            )
-        else:
-            status = f"failed: {e.error or 'no metrics'}"
-        values = ", ".join(f"{f.name}={e.params.get(f.name)}" for f in factors) or "—"
-        cells = [_cell(e.metrics.get(m) if e in complete else None, 3) for m in overview]
-        lines.append(
-            f"| {e.name} | {e.source} | {status.replace('|', '/')} | {values} | "
-            + " | ".join(cells)
-            + f" | {e.machine_text()} |"
-        )
-    with atomic_path(out_md) as tmp:
-        tmp.write_text("\n".join(lines).rstrip() + "\n")
-    return out_md
-
-
-def _experiments_data(experiments: list[Experiment]) -> str:
-    """The data of the compared runs (name, sequences, frames), each distinct one once."""
-    texts = [
-        provenance.data_text(
-            e.params.get("data.name"),
-            e.metrics.get("num_input_sequences", e.metrics.get("num_sequences")),
-            e.metrics.get("num_frames"),
-        )
-        for e in experiments
-    ]
-    return "; ".join(dict.fromkeys(texts)) or "no run compared"
-
-
-def _machine_statement(complete: list[Experiment], elsewhere: list[Experiment], machine) -> str:
-    """Which machine the compared runs (the reference values' included) were made on."""
-    if machine is not None:
-        text = (
-            f"Compared: the runs whose every stage was made on machine {machine}"
-            + (" (this machine)" if machine == provenance.machine_id() else "")
-            + ", so every value, the reference's included, comes from that one machine."
-        )
-        if elsewhere:
-            text += (
-                f" {len(elsewhere)} made on another machine, or without a record of where, are "
-                "listed under *Experiments* and not compared: rerun them here."
-            )
-        return text
-    ids = {e.machine for e in complete}
-    if len(ids) == 1 and None not in ids:
-        return f"All {len(complete)} compared runs were made on machine {ids.pop()}."
-    known = sorted(i for i in ids if i)
-    unknown = sum(e.machine is None for e in complete)
-    return (
-        f"**Not checked to come from one machine**: made on {len(known)} known machine(s)"
-        + (f", {unknown} run(s) without a record of where" if unknown else "")
-        + "; a difference between runs of different machines may be the machines'. "
-        "`dexflow report ablation` compares only runs of this machine unless given "
-        "`--any-machine`."
-    )
-
-
-def _ablation_table(values: list[str], groups: dict, table: dict, shown: list[str]) -> list[str]:
-    """One row per value; the best of each metric in bold where the values differ."""
-    head = [_metric_label(m) for m in shown]
-    lines = ["| value | runs | " + " | ".join(head) + " |", "|---" * (len(shown) + 2) + "|"]
-    for i, v in enumerate(values):
-        cells = []
-        for m in shown:
-            cell = _cell(table[m][i], 3)
-            finite = [x for x in table[m] if math.isfinite(x)]
-            higher = METRICS.get(m.split(".")[-1], ("", False))[1]
-            distinct = len(finite) > 1 and max(finite) > min(finite)
-            best = (max if higher else min)(finite) if distinct else None
-            cells.append(f"**{cell}**" if best is not None and table[m][i] == best else cell)
-        lines.append(f"| {json.loads(v)} | {len(groups[v])} | " + " | ".join(cells) + " |")
-    return lines
-
-
-def _ablation_plot(plt, key: str, values: list[str], table: dict, shown: list[str], path) -> None:
-    """Each metric against the factor's value (categorical axis for non-numbers)."""
-    columns = min(4, len(shown))
-    rows = math.ceil(len(shown) / columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 2.6 * rows), squeeze=False)
-    parsed = [json.loads(v) for v in values]
-    numeric = all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in parsed)
-    x = parsed if numeric else list(range(len(values)))
-    for ax, m in zip(np.ravel(axes), shown, strict=False):
-        if numeric:
-            ax.plot(x, table[m], marker="o")
-        else:  # categories (hands, methods): bars, not a line between them
-            ax.bar(x, table[m], color="#4c72b0")
-            ax.set_xticks(x, [str(v) for v in parsed], fontsize=7)
-        ax.set_title(_metric_label(m), fontsize=8)
-    for ax in np.ravel(axes)[len(shown) :]:
-        ax.axis("off")
-    fig.suptitle(key, fontsize=10)
-    fig.tight_layout()
-    _save(fig, path)
-
-
-def _metric_label(key: str) -> str:
-    method, _, metric = key.rpartition(".")
-    label = METRICS.get(metric, (metric, False))[0]
-    return f"{method} {label}".strip()
-
-
-def _mean(values) -> float:
-    finite = [float(v) for v in values if v is not None and math.isfinite(float(v))]
-    return float(np.mean(finite)) if finite else float("nan")
-
-
-def _sort_key(value: str):
-    parsed = json.loads(value)
-    return (0, parsed, "") if isinstance(parsed, (int, float)) else (1, 0, str(parsed))
 
 
 def run_report(params: PipelineParams, layout: Layout) -> dict:

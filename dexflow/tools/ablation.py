@@ -47,7 +47,6 @@ from dexflow.errors import ConfigError
 from dexflow.io.atomic import atomic_path, save_json
 from dexflow.io.layout import Layout
 from dexflow.pipeline import provenance
-from dexflow.pipeline.resume import code_digest
 from dexflow.tools.sweep import STATUS_FILE, UNFINISHED
 
 __all__ = [
@@ -65,7 +64,6 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 DEFAULT = "default"  # the experiment without overrides: what every other one is compared to
-SUITE_FILE = "suite.json"  # in an experiment's directory: the code digest it ran with
 CONFIDENCE = stats.CONFIDENCE
 
 
@@ -522,23 +520,6 @@ def _pooled_table(q: Question, default: ExperimentResult, results) -> list[str]:
     return [*lines, ""]
 
 
-def _code(job: Path) -> str | None:
-    """The code digest the experiment in ``job`` was run with (None: unknown)."""
-    try:
-        return json.loads((job / SUITE_FILE).read_text(encoding="utf-8")).get("code")
-    except (OSError, ValueError):
-        return None
-
-
-def _same_params(a: Path, b: Path) -> bool:
-    from dvc.utils.serialize import load_yaml
-
-    try:
-        return load_yaml(a) == load_yaml(b)
-    except Exception:  # unreadable: not the same, run again
-        return False
-
-
 def run_suite(
     suite: str,
     project: str | Path,
@@ -553,9 +534,11 @@ def run_suite(
     made them (the project's ``reports/timing`` says so; outputs made elsewhere, e.g. committed
     from another machine, are made again here). Every other experiment runs in
     ``jobs_dir/<name>`` reusing the default's outputs where its params leave a stage unchanged
-    (``refine_no_pen`` reruns refine and what follows it). An experiment whose directory holds
-    a finished run with the same composed params and code, made on this machine, is not run
-    again. So every experiment and the default it is compared to come from this machine.
+    (``refine_no_pen`` reruns refine and what follows it). A stage an experiment's directory
+    already holds, made on this machine with the key the stage has now (its command, params
+    and the bytes of its deps: :mod:`dexflow.pipeline.validity`), is kept, so a resumed suite
+    runs only what is missing or changed. So every experiment and the default it is compared to
+    come from this machine.
 
     Args:
         project: The project root (``conf/``, ``stages/``, ``dvc.yaml``, ``params.yaml``).
@@ -569,7 +552,6 @@ def run_suite(
 
     project, jobs_dir = Path(project).resolve(), Path(jobs_dir).resolve()
     names = suite_experiments(suite)
-    code = code_digest()
     machine = provenance.machine_id()
     results: dict[str, ExperimentResult] = {}
     for i, name in enumerate(names, 1):
@@ -587,26 +569,19 @@ def run_suite(
                 results[name] = load_result(job, name)
                 log.error("[%d/%d] %s: %s", i, len(names), name, exc)
                 continue
-            before = load_result(job)
-            finished = before.status == "complete" and before.machine == machine
-            if finished and _same_params(composed, job / "params.yaml") and _code(job) == code:
-                log.info("[%d/%d] %s: finished before, reused", i, len(names), name)
-            else:
-                base = project if name == DEFAULT else jobs_dir / DEFAULT
-                log.info("[%d/%d] %s: running in %s", i, len(names), name, job)
-                handler = logging.FileHandler(job / "sweep.log", mode="w", encoding="utf-8")
-                logging.getLogger("dexflow").addHandler(handler)
-                (job / SUITE_FILE).unlink(missing_ok=True)
-                try:
-                    run_job(OmegaConf.load(composed), base, job, machine=machine)
-                finally:
-                    logging.getLogger("dexflow").removeHandler(handler)
-                    handler.close()
-                save_json(job / SUITE_FILE, {"code": code})
-                if name == DEFAULT:  # the others reuse its outputs: it needs the pipeline file
-                    link = job / "dvc.yaml"
-                    if not link.exists():
-                        link.symlink_to(project / "dvc.yaml")
+            base = project if name == DEFAULT else jobs_dir / DEFAULT
+            log.info("[%d/%d] %s: in %s", i, len(names), name, job)
+            handler = logging.FileHandler(job / "sweep.log", mode="w", encoding="utf-8")
+            logging.getLogger("dexflow").addHandler(handler)
+            try:
+                run_job(OmegaConf.load(composed), base, job, machine=machine)
+            finally:
+                logging.getLogger("dexflow").removeHandler(handler)
+                handler.close()
+            if name == DEFAULT:  # the others reuse its outputs: it needs the pipeline file
+                link = job / "dvc.yaml"
+                if not link.exists():
+                    link.symlink_to(project / "dvc.yaml")
         results[name] = load_result(job, name)
         log.info("[%d/%d] %s: %s", i, len(names), name, results[name].status)
     return results

@@ -968,7 +968,7 @@ def _median(values: list[float]) -> float:
 
 def _grasp_lines(results: dict[str, dict]) -> list[str]:
     """The table of :func:`grasp_breakdown` per hand and method."""
-    from dexflow.stages.report import _cell
+    from dexflow.stages.report import cell as _cell
 
     rows = [(h, m, g) for h, r in results.items() for m, g in r.get("grasps", {}).items()]
     if not rows:

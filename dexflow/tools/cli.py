@@ -298,6 +298,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
     from dexflow.io.layout import Layout
     from dexflow.stages import report
+    from dexflow.tools import experiments as compared
 
     if args.what == "summary":
         out = report.write_project_summary(Layout(), out_md=args.out)
@@ -317,12 +318,12 @@ def _cmd_report(args: argparse.Namespace) -> int:
         show = json.loads(done.stdout or "[]")
         if args.rev:  # the workspace is not derived from that baseline
             show = [node for node in show if node.get("rev") != "workspace"]
-        experiments += report.collect_dvc(show, Layout().reports / "timing")
+        experiments += compared.collect_dvc(show, Layout().reports / "timing")
     for folder in args.multirun or []:
         if not Path(folder).is_dir():
             logging.error("%s: no such multirun directory", folder)
             return 1
-        experiments += report.collect_multirun(folder)
+        experiments += compared.collect_multirun(folder)
     if not experiments:
         logging.error("no experiments found (dvc exp show and --multirun directories are empty)")
         return 1
@@ -330,7 +331,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
     out = Path(args.out) if args.out else Layout().reports / "sweep.md"
     machine = None if args.any_machine else provenance.machine_id()
-    out = report.write_ablation(experiments, out, out.parent / "figures", machine=machine)
+    out = compared.write_ablation(experiments, out, out.parent / "figures", machine=machine)
     print(f"wrote {out} ({len(experiments)} experiments)")
     return 0
 

@@ -3,19 +3,23 @@
 ``python -m dexflow.tools.sweep -m contact.dis_min_m=0.008,0.010,0.012`` (or ``dexflow-sweep``)
 composes ``conf/`` once per job, exactly as ``dvc exp run -S`` would, and runs the stages of
 ``dvc.yaml`` in dependency order (file order, a stage after those whose outputs it reads) inside
-the job's directory (``multirun/<date>/<time>/<job>/``). A stage is
-reused instead of run when
+the job's directory (``multirun/<date>/<time>/<job>/``). Whether a stage's outputs can be
+used without running it is decided by one key (:mod:`dexflow.pipeline.validity`: the stage's
+command, its declared params' values and the bytes of its deps, what DVC's lock records): the
+key the stage has in the job, computed before it would run, against the key recorded with the
+outputs in ``reports/timing/<tag>.json``. A stage is
 
-- its declared ``params`` have the same values in the job as in the project's ``params.yaml``
-  (and in ``dvc.lock``, where the project has one: what its outputs were made with),
-- its command, deps and outs interpolate to the same strings with the job's params (so a new
-  ``data.root`` re-runs ``scale_align``),
-- every stage upstream of it (whose outputs it depends on) was reused,
-- the project has all of its outputs, and
-- (``dexflow-sweep`` and the ablation suite: :func:`run_job`'s ``machine``) this machine made
-  them, as the project's ``reports/timing/<stage>.json`` records (:mod:`dexflow.pipeline.provenance`):
-  outputs made on another machine, or without a record (restored from git or the DVC cache),
-  are made again, so that the jobs compared with each other come from one machine.
+- **kept** when the job already holds its own outputs made with that key (an ablation
+  experiment run before in the same folder);
+- **reused** when the project's outputs were made with that key and all exist, and
+  (``dexflow-sweep`` and the ablation suite: :func:`run_job`'s ``machine``) this machine made
+  them, as the project's ``reports/timing/<tag>.json`` records
+  (:mod:`dexflow.pipeline.provenance`), so that the jobs compared with each other come from one
+  machine. Outputs without a recorded key or machine (restored from git or the DVC cache) are
+  made again;
+- **run** otherwise, by :func:`dexflow.pipeline.executor.run_command`, which records the key
+  with the outputs. An upstream stage that ran in the job changes the key of what reads its
+  outputs unless it wrote the same bytes.
 
 A reused stage's cached outputs are symlinked into the job (``job/data/x -> project/data/x``);
 its ``cache: false`` outputs (``reports/...``) are copied, so that each job has its own
@@ -26,7 +30,7 @@ Each job directory ends up holding ``.hydra/`` (config, overrides), ``params.yam
 ``reports/metrics/*.json``, the job's log and ``sweep_status.json``::
 
     {"status": "ok" | "failed", "stage": <failed stage or null>, "error": <reason or null>,
-     "reused": [<stage>, ...], "ran": [<stage>, ...]}
+     "kept": [<stage>, ...], "reused": [<stage>, ...], "ran": [<stage>, ...]}
 
 which ``dexflow report ablation --multirun <dir>`` reads. ``stage`` is ``"params"`` when the
 composed config fails validation and ``"dvc.yaml"`` when the pipeline cannot be read; a job
@@ -53,21 +57,20 @@ from omegaconf import DictConfig, OmegaConf
 from dexflow.config import load_params, project_root
 from dexflow.errors import ConfigError
 from dexflow.pipeline import provenance
-from dexflow.pipeline.executor import remove_path, run_command
+from dexflow.pipeline.executor import TIMING_DIR, recorded_key, remove_path, run_command
 from dexflow.pipeline.registry import (
     METRICS_DIR,
     Stage,
     load_stages,
     lookup,
     overlaps,
-    upstream_stages,
 )
+from dexflow.pipeline.validity import stage_key
 
 __all__ = ["main", "run_job"]
 log = logging.getLogger(__name__)
 
 STATUS_FILE = "sweep_status.json"
-TIMING_DIR = "reports/timing"  # as dexflow.io.layout has it
 UNFINISHED = "did not finish (interrupted?)"  # the status a job holds while a stage runs
 APP_CONFIG = "dexflow_sweep"
 # Symlinked into every job so that stage commands (`python stages/x.py`) and
@@ -91,6 +94,7 @@ class _Status:
     status: str = "ok"
     stage: str | None = None
     error: str | None = None
+    kept: list[str] = field(default_factory=list)
     reused: list[str] = field(default_factory=list)
     ran: list[str] = field(default_factory=list)
 
@@ -119,39 +123,34 @@ def _get(params: Mapping[str, Any], key: str) -> Any:
         return None
 
 
+def _why_differs(stage: Stage, job_params: Mapping[str, Any], project_params: Any) -> str:
+    """Which of the stage's params differs from the project's ``params.yaml``, to say why the
+    keys differ (the decision is the key's, not this)."""
+    for key in stage.params:
+        differs = _difference(_get(job_params, key), _get(project_params or {}, key), key)
+        if differs:
+            return f"{differs} differs from the project's"
+    return (
+        "its command or the bytes of a dep differ from those the project's outputs were made from"
+    )
+
+
 def _why_not_reused(
     stage: Stage,
-    project_stage: Stage | None,
+    key: str,
     job_params: Mapping[str, Any],
-    project_params: Mapping[str, Any],
-    locked: Mapping[str, Any] | None,
-    upstream_ran: list[str],
+    project_params: Any,
     root: Path,
     machine: str | None = None,
 ) -> str | None:
-    """Why ``stage`` must run in the job, or None if the project's outputs can be reused.
-
-    Args:
-        locked: The stage's params as ``dvc.lock`` records them (dotted keys as in dvc.yaml),
-            or None where the project has no lock entry for the stage.
-        upstream_ran: The stages upstream of this one that ran in the job.
-        machine: Reuse only outputs this machine id made (None: wherever made).
-    """
-    if upstream_ran:
-        return f"upstream {', '.join(upstream_ran)} ran"
-    if project_stage is None:
-        return "the project's params.yaml is missing or does not fit dvc.yaml"
-    if project_stage != stage:
-        return "its cmd, deps or outs differ with the job's params"
-    for key in stage.params:
-        value = _get(job_params, key)
-        differs = _difference(value, _get(project_params, key), key)
-        if differs:
-            return f"{differs} differs from the project's params.yaml"
-        if locked is not None:
-            differs = _difference(value, locked.get(key), key)
-            if differs:
-                return f"the project's outputs were made with another {differs} (dvc.lock)"
+    """Why ``stage``, whose key in the job is ``key``, must run in the job, or None if the
+    project's outputs can be reused: they exist and were made with the same key (and, with
+    ``machine``, by this machine)."""
+    recorded = recorded_key(stage, root)
+    if recorded is None:
+        return f"no key recorded with the project's outputs ({TIMING_DIR}/{stage.tag}.json)"
+    if recorded != key:
+        return _why_differs(stage, job_params, project_params)
     missing = [p for p in stage.outputs if not (root / p).exists()]
     if missing:
         return f"the project has no {', '.join(missing)}"
@@ -165,6 +164,16 @@ def _why_not_reused(
         if made.get("machine_id") != machine:
             return f"the project's outputs were made on machine {made.get('machine_id')}"
     return None
+
+
+def _kept(stage: Stage, key: str, job_dir: Path, machine: str | None) -> bool:
+    """Whether the job holds its own outputs of ``stage`` made with ``key`` (an experiment run
+    before in the same folder; with ``machine``, made by that machine), which it keeps."""
+    if recorded_key(stage, job_dir) != key:
+        return False
+    if not all((job_dir / p).exists() and not (job_dir / p).is_symlink() for p in stage.outputs):
+        return False
+    return machine is None or (_made_by(stage, job_dir) or {}).get("machine_id") == machine
 
 
 def _made_by(stage: Stage, root: Path) -> dict[str, Any] | None:
@@ -255,39 +264,25 @@ def run_job(
         status.stage = "dvc.yaml"
         job_params = _load_yaml(params_file) or {}
         project_params = _load_yaml(root / "params.yaml")
-        lock = (_load_yaml(root / "dvc.lock") or {}).get("stages", {})
         stages = load_stages(root / "dvc.yaml", job_params)
-        project_stages: dict[str, Stage] = {}
-        if project_params is not None:
-            try:
-                project_stages = {s.name: s for s in load_stages(root / "dvc.yaml", project_params)}
-            except ConfigError as exc:
-                log.warning("project params.yaml does not fit dvc.yaml (%s): reusing nothing", exc)
-        upstream = upstream_stages(stages)
         for stage in stages:
             status.stage = stage.name
-            entry = lock.get(stage.name)
-            locked = ((entry.get("params") or {}).get("params.yaml") or {}) if entry else None
-            reason = _why_not_reused(
-                stage,
-                project_stages.get(stage.name),
-                job_params,
-                project_params or {},
-                locked,
-                [u for u in upstream[stage.name] if u in status.ran],
-                root,
-                machine,
-            )
+            _link_inputs(stage, stages, root, job_dir)  # raw inputs, which the key reads
+            key = stage_key(stage, job_params, job_dir)
+            if _kept(stage, key, job_dir, machine):
+                status.kept.append(stage.name)
+                log.info("stage %s: kept the job's own outputs (same key)", stage.name)
+                continue
+            reason = _why_not_reused(stage, key, job_params, project_params, root, machine)
             if reason is None:
                 _reuse(stage, root, job_dir)
                 status.reused.append(stage.name)
                 log.info("stage %s: reused the project's outputs", stage.name)
                 continue
             log.info("stage %s: running (%s)", stage.name, reason)
-            _link_inputs(stage, stages, root, job_dir)
             status.status, status.error = "failed", UNFINISHED
             status.write(job_dir)  # what a killed job leaves behind
-            error = run_command(stage, job_dir)
+            error = run_command(stage, job_dir, key)
             if error is not None:
                 status.error = error
                 break
