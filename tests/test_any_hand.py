@@ -31,7 +31,7 @@ from dexflow.pipeline.runner import stage_main
 from dexflow.sim.mujoco_world import MujocoGraspWorld, hand_name
 from dexflow.sim.pybullet_world import PybulletGraspWorld, hand_urdf
 from dexflow.sim.scene_check import _unstable, check_scenes
-from dexflow.tools.bench import _pipeline_stages
+from dexflow.tools.bench.pipeline import pipeline_stages
 from dexflow.tools.cli import main as cli_main
 from tests.hand_models import PUBLIC_SHAPES, hand4
 
@@ -154,7 +154,7 @@ def test_a_hand_the_engines_cannot_load_stops_the_stage_once(tmp_path, monkeypat
     project = _project(tmp_path, "plyhand", _ply_palm)
     params = load_params(project / "params.yaml")
     layout = Layout.of(params.data.root, root=project)
-    for name, call in _pipeline_stages(params, layout):
+    for name, call in pipeline_stages(params, layout):
         if name == "simulate@baseline":
             break
         call()
@@ -200,7 +200,7 @@ def test_public_shaped_hand_runs_every_stage(tmp_path, shape):
     project = _project(tmp_path, shape, PUBLIC_SHAPES[shape])
     params = load_params(project / "params.yaml")
     layout = Layout.of(params.data.root, root=project)
-    results = {name: call() for name, call in _pipeline_stages(params, layout)}
+    results = {name: call() for name, call in pipeline_stages(params, layout)}
     for name, summary in results.items():
         if name in ("demo", "hand", "metrics"):
             continue

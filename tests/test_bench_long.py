@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from dexflow.io.sequence import load_sequence, save_sequence
-from dexflow.tools.bench import _long_sequence, _long_table
+from dexflow.tools.bench.long import _long_sequence, _long_table
 
 from .conftest import make_sequence
 
@@ -45,7 +45,7 @@ def test_the_table_gives_time_and_memory_ratios_and_a_10_minute_estimate():
 
 
 def test_the_pipeline_table_on_user_data_has_no_demo_row_and_names_the_command():
-    from dexflow.tools.bench import _bench_table
+    from dexflow.tools.bench.pipeline import _bench_table
 
     def run(workers, scale):
         seconds = {"scale_align": 10.0 * scale, "retarget@dexflow": 2.0 * scale,
@@ -65,7 +65,7 @@ def test_the_pipeline_table_on_user_data_has_no_demo_row_and_names_the_command()
 
 
 def test_the_pipeline_table_at_two_data_sizes_shows_speed_ups_and_growth():
-    from dexflow.tools.bench import _bench_table
+    from dexflow.tools.bench.pipeline import _bench_table
 
     def run(workers, scale):
         # scale_align is per object (the same at both sizes); the rest grows with the frames

@@ -8,7 +8,8 @@ import numpy as np
 
 from dexflow.io.artifacts import ENGINE_KEYS, SimulationResult, write_simulation
 from dexflow.io.layout import StageDir
-from dexflow.tools.bench import _real_table, _subset_root, grasp_breakdown
+from dexflow.tools.bench.pipeline import subset_root as _subset_root
+from dexflow.tools.bench.real import _real_table, grasp_breakdown
 
 
 def test_subset_links_evenly_spaced_sequences_and_the_rest_of_the_root(tmp_path):

@@ -174,3 +174,23 @@ def test_dexflow_help_says_what_the_command_is_for(capsys):
     assert "robot-hand trajectories" in text and "dvc repro" in text
     for command in ("params", "validate", "demo", "convert", "hand", "bench", "report", "view"):
         assert command in text
+
+
+def test_demo_command_takes_its_options_from_the_schema(tmp_path, capsys):
+    """`dexflow demo` has no options of its own: the `demo` section's fields (help listing each
+    with its conf/ default) and Hydra overrides of them, validated as params.yaml is."""
+    import dataclasses
+
+    from dexflow.params import DemoConfig
+    from dexflow.tools.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["demo", "--help"])
+    shown = capsys.readouterr().out
+    for f in dataclasses.fields(DemoConfig):
+        assert f"demo.{f.name}={getattr(DemoConfig(), f.name)}" in shown
+    out = tmp_path / "demo"
+    assert main(["demo", str(out), "demo.objects=[025_mug]", "demo.sequences_per_object=1"]) == 0
+    assert [p.name for p in (out / "sequences").iterdir()] == ["025_mug__00_power.npz"]
+    assert main(["demo", str(out), "demo.sequences_per_object=0"]) == 2
+    assert "demo.sequences_per_object" in capsys.readouterr().err

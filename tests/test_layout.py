@@ -270,10 +270,10 @@ def test_bench_runs_every_dvc_stage_in_dvc_order(stages, tmp_path):
 
     from dexflow.config import load_params
     from dexflow.pipeline.registry import load_stages
-    from dexflow.tools.bench import _pipeline_stages
+    from dexflow.tools.bench.pipeline import pipeline_stages
 
     params = load_params(Path(__file__).parents[1] / "params.yaml")
-    names = [name for name, _ in _pipeline_stages(params, Layout.of("data", root=tmp_path))]
+    names = [name for name, _ in pipeline_stages(params, Layout.of("data", root=tmp_path))]
     dvc = yaml.safe_load((Path(__file__).parents[1] / "dvc.yaml").read_text())
     assert next(iter(dvc["stages"])) == "demo"  # ``stages`` leaves the demo out: no sequences
     assert sorted(names) == sorted(["demo", *(name for name in stages if name != "report")])

@@ -251,7 +251,8 @@ def test_report_ablation_command_refuses_a_baseline_of_another_machine(tmp_path)
 
 
 def test_benchmark_reports_say_where_they_were_measured(tmp_path, capsys):
-    from dexflow.tools.bench import _publish, _real_table
+    from dexflow.tools.bench.pipeline import publish as _publish
+    from dexflow.tools.bench.real import _real_table
 
     result = {"metrics": {}, "seconds": {"retarget@dexflow": 2.0}, "sequences": 4,
               "frames": 120, "retarget_s_per_sequence": 1.0}  # fmt: skip
