@@ -35,6 +35,9 @@ joint leads).
 scale_align mirrors every human hand of the other side, with its scene, to the robot's. With
 ``mirror=True`` a left model is written as its mirror image instead, a right hand
 (:func:`mirror_model`, a URDF beside the yaml; ``side: left, mirrored: true``).
+
+**One file** (about 550 lines): the method (its first paragraphs) and the proposal it describes, step by
+step; the tree walk, the fingers, the mirror and the yaml each have their own module.
 """
 
 from __future__ import annotations

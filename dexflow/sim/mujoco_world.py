@@ -87,6 +87,9 @@ tests of the same closed grasp: neither implies the other.
 
 Deterministic: every test resets the data (``mj_resetData``) and sets everything it reads, so a
 frame's result depends neither on the frames tested before it nor on the world instance.
+
+**One file** (about 680 lines): the scene builder and the grasp test run on the scene it builds (names,
+ids and the state saved between tests); stage replay extends the scene through its public builders.
 """
 
 from __future__ import annotations

@@ -42,6 +42,10 @@ exceed the band: an acceleration above ``(dis_max - dis_min) fps²`` (5.2 m/s² 
 than the likelihood test's ``a_tol`` (5 m/s²) allows the finger relative to the object. The
 summary counts the band crossings (``band_jumps``), the one-frame runs, the states the inference
 removed and filled, and says all this in ``inference_note``.
+
+**One file** (about 580 lines): stage contact's math is one state machine: the dual thresholds, the frame-
+to-frame smoothing and the inference read and write the same per-finger states, in the notation of
+the paper's equations; apart, each part would be read without the others it depends on.
 """
 
 from __future__ import annotations

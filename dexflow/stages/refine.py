@@ -99,6 +99,10 @@ by ``window_overlap`` frames, cross-faded there), so that memory is bounded by a
 release is then solved over all frames of a window at once.
 
 Joint limits hold exactly (projection after every step and after blending). Metres.
+
+**One file** (about 1000 lines): stage refine's energies, the per-finger solver that minimises them and the
+windows it runs over share the notation of the energies (this docstring); apart, a term would be
+read without the solver that weighs it.
 """
 
 from __future__ import annotations

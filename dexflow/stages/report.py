@@ -9,6 +9,9 @@ The comparison of experiments (``reports/sweep.md``) is :mod:`dexflow.tools.expe
 
 It opens with their provenance (:mod:`dexflow.pipeline.provenance`): the commit and machine they were
 written on, the data, and the machine(s) the numbers were made on.
+
+**One file** (about 820 lines): the summary is one document: each section is a function of its own, in the
+order the summary shows them.
 """
 
 from __future__ import annotations

@@ -35,6 +35,10 @@ Frames whose error jumps after solving are re-initialised by the global search a
 **Baseline** (``method: position``): each frame on its own, the alignment term alone (the
 position retargeting of dex-retargeting, warm-started from the previous frame), optionally
 low-pass filtered afterwards; frames without an observation hold the last solution.
+
+**One file** (about 620 lines): the objective's terms, the global search and the temporal pass share the
+same batched tensors and notation (the equations in this docstring); each is a function of its own
+here.
 """
 
 from __future__ import annotations

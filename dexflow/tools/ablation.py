@@ -28,6 +28,9 @@ and of the experiment must have been made on the same machine, as their ``report
 records say (:mod:`dexflow.pipeline.provenance`). The suite reruns here whatever this machine did not
 make (the project's outputs committed from elsewhere included); the report states the machine,
 and lists any experiment it cannot compare with the reason.
+
+**One file** (about 600 lines): the suite's questions, the paired comparison that answers them and the
+runner that makes the experiments are one report's parts, each a few functions.
 """
 
 from __future__ import annotations
