@@ -194,3 +194,37 @@ def test_demo_command_takes_its_options_from_the_schema(tmp_path, capsys):
     assert [p.name for p in (out / "sequences").iterdir()] == ["025_mug__00_power.npz"]
     assert main(["demo", str(out), "demo.sequences_per_object=0"]) == 2
     assert "demo.sequences_per_object" in capsys.readouterr().err
+
+
+def test_convert_options_come_from_their_dataclass():
+    """Every field of ConvertOptions is an option of `dexflow convert`, described by its
+    docstring; options not given keep the dataclass's defaults (written once, there)."""
+    import dataclasses
+
+    from dexflow.data.formats import ConvertOptions
+    from dexflow.tools.cli import build_parser
+    from dexflow.tools.cli.schema import options_from
+
+    parser = build_parser()
+    args = parser.parse_args(["convert", "ho3d", "src", "dst"])
+    assert options_from(args, ConvertOptions) == ConvertOptions()
+    args = parser.parse_args(
+        [
+            "convert",
+            "grab",
+            "src",
+            "dst",
+            "--jump-threshold-m",
+            "0.05",
+            "--side",
+            "both",
+            "--strict",
+        ]
+    )
+    assert options_from(args, ConvertOptions) == ConvertOptions(
+        jump_threshold_m=0.05, side="both", strict=True
+    )
+    shown = parser._subparsers._group_actions[0].choices["convert"].format_help()
+    for f in dataclasses.fields(ConvertOptions):
+        assert "--" + f.name.replace("_", "-") in shown
+    assert "tracking loss" in shown and "(default: 0.08)" in shown

@@ -9,8 +9,9 @@ import sys
 import tempfile
 from pathlib import Path
 
+from dexflow.data.formats import ConvertOptions
 from dexflow.params import DemoConfig
-from dexflow.tools.cli.schema import schema_help
+from dexflow.tools.cli.schema import add_schema_options, options_from, schema_help
 
 __all__ = ["add_commands"]
 
@@ -133,15 +134,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_convert(args: argparse.Namespace) -> int:
     from dexflow.data.adapters import ConvertOptions, convert
 
-    options = ConvertOptions(
-        models=args.models,
-        mano=args.mano,
-        camera=args.camera,
-        fps=args.fps,
-        side=args.side,
-        jump_threshold_m=args.jump_threshold_m,
-        strict=args.strict,
-    )
+    options = options_from(args, ConvertOptions)
     report = convert(args.adapter, args.src, args.dst, options)
     for name, entry in report["sequences"].items():
         if entry["status"] == "ok":
@@ -217,17 +210,7 @@ def add_commands(sub) -> None:
         "src", nargs="+", help="source folder(s): e.g. subject folders or the dataset root"
     )
     p.add_argument("dst", help="output data root (sequences/, meshes/, convert.json)")
-    p.add_argument("--models", help="object models folder (default SRC/models)")
-    p.add_argument("--mano", help="your MANO model file or folder (only for MANO-only data)")
-    p.add_argument("--camera", help="DexYCB camera serial (default: the first)")
-    p.add_argument("--fps", type=float, help="frame rate where the data does not give it")
-    p.add_argument("--side", default="right", choices=["right", "left", "both"], help="GRAB hands")
-    p.add_argument(
-        "--jump-threshold-m", type=float, default=0.08, help="wrist jump = tracking lost"
-    )
-    p.add_argument(
-        "--strict", action="store_true", help="a missing object model is an error (exit 1)"
-    )
+    add_schema_options(p, ConvertOptions, {"side": ["right", "left", "both"]})
     p.set_defaults(func=_cmd_convert)
 
     p = sub.add_parser("view", help="write a rerun recording (.rrd) of a sequence")
