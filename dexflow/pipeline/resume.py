@@ -6,14 +6,14 @@ A stage's output directory holds, while the stage runs, two kinds of bookkeeping
   (:mod:`dexflow.pipeline.validity`: its command, params and the bytes of every dep), the one
   key by which every runner decides whether outputs are still valid.
 - ``.done/<group>/<name>.json``: one record per completed item, written after its outputs: the
-  digest of the item's input files (their bytes, not their size or time) and the value the item
-  returned (its summary entry).
+  value the item returned (its summary entry).
 
-On start, a directory with another fingerprint (or none) is emptied; one with the same
-fingerprint is kept and swept: every file that is not an output of an item with a valid record
-goes (outputs of removed sequences, half-written temporary files, the old summary). An item
-whose record matches its inputs is not run again; its recorded value is reused, so the summary
-is the one an uninterrupted run writes. When the stage finishes, :meth:`StageOutput.finish`
+On start, a directory with another fingerprint (or none) is emptied: a changed param, command
+or input (any byte of any dep) starts the stage afresh, as DVC would. One with the same
+fingerprint is kept and swept: every file that is not an output of an item with a record goes
+(half-written temporary files, outputs without a record, the old summary). An item with a
+record is not run again (the key says its inputs are the ones it was made from); its recorded
+value is reused, so the summary is the one an uninterrupted run writes. When the stage finishes, :meth:`StageOutput.finish`
 writes ``summary.json`` and removes the bookkeeping, so a completed output directory holds
 exactly the stage's outputs (what DVC hashes: no timestamps, no absolute paths) and a later run
 starts from scratch. Items that failed leave no record and are retried.
@@ -44,7 +44,6 @@ Example (a stage runner)::
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import logging
 import shutil
@@ -61,7 +60,6 @@ from dexflow.io.atomic import atomic_path, save_json
 from dexflow.io.layout import StageDir, stray_files
 from dexflow.pipeline import validity
 from dexflow.pipeline.parallel import ItemResult, map_items
-from dexflow.pipeline.validity import file_digest
 
 if TYPE_CHECKING:
     from dexflow.params import RunParams
@@ -78,14 +76,6 @@ STAGE_FILE = ".stage.json"
 DONE_DIR = ".done"
 _MISSING = "-"
 log = logging.getLogger(__name__)
-
-
-def _files_digest(paths: Iterable[Path]) -> str:
-    """sha1 over the given files' bytes (a missing file counts as such): an item's inputs."""
-    digest = hashlib.sha1()
-    for path in paths:
-        digest.update((file_digest(path) if path.is_file() else _MISSING).encode() + b"\0")
-    return digest.hexdigest()
 
 
 def _files_size(paths: Iterable[Path]) -> int:
@@ -125,15 +115,12 @@ class _Recorded:
     func: Callable[[Any], Any]
     name: Callable[[Any], str]
     record_dir: Path
-    digests: dict[str, str]
 
     def __call__(self, item: Any) -> Any:
         value = self.func(item)
         key = self.name(item)
         try:
-            text = json.dumps(
-                {"inputs": self.digests[key], "value": value}, default=_json_default, indent=1
-            )
+            text = json.dumps({"value": value}, default=_json_default, indent=1)
         except (TypeError, ValueError) as exc:  # the item stands; only resuming it is lost
             log.warning("%s: no done-record (%s); a rerun recomputes it", key, exc)
             return value
@@ -235,7 +222,7 @@ class StageOutput:
             group: Subdirectory of the outputs (``sequences``, ``objects``).
             name: The item's name (by default the file's stem).
             inputs: The files an item reads (by default ``<root>/sequences/<name>.npz`` of
-                every input root).
+                every input root): their sizes order the work, largest first.
 
         Returns:
             One result per item, in input order; reused items carry their recorded value.
@@ -246,7 +233,6 @@ class StageOutput:
             files_of = [[d.sequence(n) for d in self.input_dirs] for n in names]
         else:
             files_of = [[Path(p) for p in inputs(item)] for item in items]
-        digests = {n: _files_digest(files) for n, files in zip(names, files_of, strict=True)}
         record_dir = self.out_root / DONE_DIR / group
         done: dict[str, Any] = {}
         for key in names:
@@ -254,7 +240,7 @@ class StageOutput:
                 record = json.loads((record_dir / f"{key}.json").read_text(encoding="utf-8"))
             except (OSError, ValueError):
                 continue
-            if record.get("inputs") == digests[key]:
+            if isinstance(record, dict) and "value" in record:
                 done[key] = record["value"]
         _sweep(self.out_root / group, record_dir, set(done))
         if done:
@@ -266,7 +252,7 @@ class StageOutput:
             (i for i, key in enumerate(names) if key not in done), key=lambda i: -sizes[names[i]]
         )
         computed = map_items(
-            _Recorded(func, name, record_dir, digests),
+            _Recorded(func, name, record_dir),
             [items[i] for i in todo],
             run,
             desc or self.stage,
