@@ -13,7 +13,8 @@ or input (any byte of any dep) starts the stage afresh, as DVC would. One with t
 fingerprint is kept and swept: every file that is not an output of an item with a record goes
 (half-written temporary files, outputs without a record, the old summary). An item with a
 record is not run again (the key says its inputs are the ones it was made from); its recorded
-value is reused, so the summary is the one an uninterrupted run writes. When the stage finishes, :meth:`StageOutput.finish`
+value is reused, so the summary is the one an uninterrupted run writes. When the stage
+finishes, :meth:`StageOutput.finish`
 writes ``summary.json`` and removes the bookkeeping, so a completed output directory holds
 exactly the stage's outputs (what DVC hashes: no timestamps, no absolute paths) and a later run
 starts from scratch. Items that failed leave no record and are retried.
