@@ -123,8 +123,9 @@ def test_deps_cover_the_code_the_stage_runs(name):
         files[m].relative_to(ROOT).as_posix(): m for m in sorted(modules) if m not in NOT_DEPS
     }
     missing = [f"{path} ({why})" for path, why in needed.items() if not _covered(path, deps)]
-    assert not missing, f"stage {name} runs files that are not among its deps:\n" + "\n".join(
-        missing
+    assert not missing, (
+        f"stage {name} runs files that are not among its deps (`python -m tests.test_dvc_deps` "
+        "rewrites the code deps of dvc.yaml from the imports):\n" + "\n".join(missing)
     )
 
 
@@ -146,3 +147,65 @@ def test_deps_exist(name):
         and not (ROOT / d).exists()
     ]
     assert not missing, f"stage {name}: deps that do not exist: {missing}"
+
+
+def code_deps(script: str) -> list[str]:
+    """The dexflow files ``script`` runs, a package folder standing for all of its modules
+    when it runs every one: what :func:`write_code_deps` lists."""
+    files = module_files()
+    paths = sorted(
+        files[m].relative_to(ROOT).as_posix()
+        for m in closure(imports_of_file(ROOT / script))
+        if m not in NOT_DEPS
+    )
+    chosen = set(paths)
+    for folder in sorted({p.rpartition("/")[0] for p in paths}, key=lambda f: f.count("/")):
+        if folder == PACKAGE_DIR or any(folder.startswith(c + "/") for c in chosen):
+            continue
+        every = {q.relative_to(ROOT).as_posix() for q in (ROOT / folder).rglob("*.py")}
+        if every <= set(paths):
+            chosen = {p for p in chosen if not p.startswith(folder + "/")} | {folder}
+    return sorted(chosen, key=lambda p: (p.count("/"), p))
+
+
+PACKAGE_DIR = "dexflow"
+
+
+def write_code_deps() -> None:
+    """Rewrite each stage's ``dexflow/...`` deps in dvc.yaml from its imports (comments and
+    other deps kept; a ``dexflow/`` dep holding no module, such as hand assets, is kept)."""
+    lines = (ROOT / "dvc.yaml").read_text(encoding="utf-8").split("\n")
+    out, i, script = [], 0, None
+    while i < len(lines):
+        found = SCRIPT.search(lines[i]) if "cmd:" in lines[i] else None
+        script = found.group(1) if found else script
+        if lines[i].strip() != "deps:" or script is None:
+            out.append(lines[i])
+            i += 1
+            continue
+        out.append(lines[i])
+        i += 1
+        entries = []
+        while i < len(lines) and lines[i].lstrip().startswith("- "):
+            entries.append(lines[i])
+            i += 1
+        indent = entries[0][: len(entries[0]) - len(entries[0].lstrip())]
+
+        def path(entry: str) -> str:
+            return entry.strip()[2:].split("#")[0].strip()
+
+        def is_code(entry: str) -> bool:
+            dep = path(entry)
+            return dep.startswith(PACKAGE_DIR + "/") and (
+                dep.endswith(".py") or any((ROOT / dep).rglob("*.py"))
+            )
+
+        first = [e for e in entries if path(e) == script]
+        rest = [e for e in entries if path(e) != script and not is_code(e)]
+        out += first + [f"{indent}- {dep}" for dep in code_deps(script)] + rest
+        script = None
+    (ROOT / "dvc.yaml").write_text("\n".join(out), encoding="utf-8")
+
+
+if __name__ == "__main__":
+    write_code_deps()
