@@ -20,7 +20,7 @@ from dexflow.errors import ConfigError
 from dexflow.pipeline import provenance
 from dexflow.pipeline.executor import record_key, run_command
 from dexflow.pipeline.registry import load_stages, upstream_stages
-from dexflow.pipeline.validity import stage_key
+from dexflow.pipeline.validity import params_values, stage_key
 from dexflow.tools.experiments import collect_multirun
 from dexflow.tools.sweep import main, run_job
 
@@ -147,9 +147,9 @@ def toy(tmp_path) -> Path:
     (root / "stages" / "write.py").write_text(WRITE)
     (root / "dvc.yaml").write_text(TOY_DVC_YAML)
     (root / "params.yaml").write_text(OmegaConf.to_yaml(_compose(), resolve=True))
-    params = load_yaml(root / "params.yaml")
+    params, values = load_yaml(root / "params.yaml"), params_values(root / "params.yaml")
     for stage in load_stages(root / "dvc.yaml", params):  # as `dvc repro` and a sweep run them
-        assert run_command(stage, root, stage_key(stage, params, root)) is None
+        assert run_command(stage, root, stage_key(stage, values, root)) is None
     return root
 
 
@@ -193,7 +193,8 @@ def test_outputs_recorded_with_another_key_are_not_reused(toy, tmp_path):
     left by a run with another dis_max_m, as after a hand-edited params.yaml) are made again."""
     params = load_yaml(toy / "params.yaml")
     stage = next(s for s in load_stages(toy / "dvc.yaml", params) if s.name == "down@dis_max_m")
-    other = {**params, "contact": {**params["contact"], "dis_max_m": 0.5}}
+    values = params_values(toy / "params.yaml")
+    other = {**values, "contact": {**values["contact"], "dis_max_m": 0.5}}
     record_key(stage, toy, stage_key(stage, other, toy))
     status = run_job(_compose(), toy, tmp_path / "job")
     assert status["reused"] == ["up", "down@dis_min_m"] and status["ran"] == ["down@dis_max_m"]
@@ -422,7 +423,7 @@ def test_failed_jobs_are_recorded_while_the_others_complete(project):
     assert status["error"] and status["reused"] == ["demo@demo", "hand"] and status["ran"] == []
 
     job, status = by_params[5, "data/demo"]
-    assert status == {"status": "ok", "stage": None, "error": None, "ran": [],
+    assert status == {"status": "ok", "stage": None, "error": None, "ran": [], "kept": [],
                       "reused": status["reused"]}  # fmt: skip
     stages = load_stages(project / "dvc.yaml", load_yaml(project / "params.yaml"))
     assert status["reused"] == [s.name for s in stages]
@@ -457,3 +458,21 @@ def test_a_cycle_in_dvc_yaml_is_named(tmp_path):
     )
     with pytest.raises(ConfigError, match=r"\['a', 'b'\] depend on each other"):
         load_stages(tmp_path / "dvc.yaml", {})
+
+
+def test_a_folder_holding_links_has_the_digest_of_what_they_point_to(tmp_path):
+    """A job's ``data/retarget`` is a folder of its own holding links to the project's outputs:
+    its digest is that of the project's folder."""
+    from dexflow.pipeline.validity import path_digest
+
+    project = tmp_path / "project" / "retarget"
+    for method in ("dexflow", "position"):
+        (project / method).mkdir(parents=True)
+        (project / method / "a.npz").write_bytes(method.encode())
+    job = tmp_path / "job" / "retarget"
+    job.mkdir(parents=True)
+    for method in ("dexflow", "position"):
+        (job / method).symlink_to(project / method, target_is_directory=True)
+    assert path_digest(job) == path_digest(project)
+    (project / "position" / "a.npz").write_bytes(b"other")
+    assert path_digest(job) == path_digest(project) != path_digest(tmp_path / "missing")

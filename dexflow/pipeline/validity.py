@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Iterable, Mapping
 from contextvars import ContextVar
 from pathlib import Path
@@ -36,7 +37,15 @@ from typing import Any
 
 from dexflow.pipeline.registry import Stage, lookup
 
-__all__ = ["CHECKOUT", "RUNNING_KEY", "file_digest", "key", "path_digest", "stage_key"]
+__all__ = [
+    "CHECKOUT",
+    "RUNNING_KEY",
+    "file_digest",
+    "key",
+    "params_values",
+    "path_digest",
+    "stage_key",
+]
 
 CHECKOUT = Path(__file__).resolve().parents[2]  # where dvc.yaml's dexflow/... deps live
 _MISSING = "missing"
@@ -54,12 +63,13 @@ def file_digest(path: str | Path) -> str:
 
 
 def _listed(root: Path) -> Iterable[Path]:
-    for path in sorted(root.rglob("*")):
-        parts = path.relative_to(root).parts
-        if any(p.startswith(".") or p == "__pycache__" for p in parts):
-            continue
-        if path.is_file():
-            yield path
+    """The files below ``root``, sorted, links followed (a sweep job's folder holds links to
+    the project's outputs, even below a folder of its own: ``data/retarget/dexflow``)."""
+    found = []
+    for folder, dirs, files in os.walk(root, followlinks=True):
+        dirs[:] = [d for d in dirs if not d.startswith(".") and d != "__pycache__"]
+        found += [Path(folder) / f for f in files if not f.startswith(".")]
+    return sorted(found, key=lambda p: p.relative_to(root).as_posix())
 
 
 def path_digest(path: str | Path) -> str:
@@ -86,6 +96,17 @@ def key(command: str, params: Mapping[str, Any], deps: Mapping[str, str]) -> str
     return hashlib.sha1(text.encode()).hexdigest()
 
 
+def params_values(params_file: str | Path) -> dict[str, Any]:
+    """The params a key is computed from: ``params.yaml`` loaded and validated as a stage
+    loads it (:func:`dexflow.config.load_params`, the schema's defaults filled in), as plain
+    values, so that the runner inside a stage and a sweep outside it read the same values."""
+    import dataclasses
+
+    from dexflow.config import load_params
+
+    return dataclasses.asdict(load_params(params_file))
+
+
 def _resolve(dep: str, folder: Path) -> Path:
     path = Path(dep)
     if path.is_absolute():
@@ -97,9 +118,9 @@ def _resolve(dep: str, folder: Path) -> Path:
 
 
 def stage_key(stage: Stage, params: Mapping[str, Any], folder: str | Path) -> str:
-    """The key of ``stage``'s outputs when it runs in ``folder`` with ``params`` (the contents
-    of that folder's ``params.yaml``, as :func:`~dexflow.pipeline.registry.load_stages` read the
-    stage from): its command, its declared params' values and its deps' digests."""
+    """The key of ``stage``'s outputs when it runs in ``folder`` with ``params``
+    (:func:`params_values` of that folder's ``params.yaml``): its command, its declared params'
+    values and its deps' digests."""
     folder = Path(folder)
     values = {}
     for name in stage.params:

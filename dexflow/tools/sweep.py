@@ -65,7 +65,7 @@ from dexflow.pipeline.registry import (
     lookup,
     overlaps,
 )
-from dexflow.pipeline.validity import stage_key
+from dexflow.pipeline.validity import params_values, stage_key
 
 __all__ = ["main", "run_job"]
 log = logging.getLogger(__name__)
@@ -265,10 +265,11 @@ def run_job(
         job_params = _load_yaml(params_file) or {}
         project_params = _load_yaml(root / "params.yaml")
         stages = load_stages(root / "dvc.yaml", job_params)
+        key_params = params_values(params_file)
         for stage in stages:
             status.stage = stage.name
             _link_inputs(stage, stages, root, job_dir)  # raw inputs, which the key reads
-            key = stage_key(stage, job_params, job_dir)
+            key = stage_key(stage, key_params, job_dir)
             if _kept(stage, key, job_dir, machine):
                 status.kept.append(stage.name)
                 log.info("stage %s: kept the job's own outputs (same key)", stage.name)
