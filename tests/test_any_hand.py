@@ -33,6 +33,7 @@ from dexflow.sim.pybullet_world import PybulletGraspWorld, hand_urdf
 from dexflow.sim.scene_check import _unstable, check_scenes
 from dexflow.tools.bench.pipeline import pipeline_stages
 from dexflow.tools.cli import main as cli_main
+from tests import quick_pipeline
 from tests.hand_models import PUBLIC_SHAPES, hand4
 
 # ------------------------------------------------------------------------------ the repairs
@@ -146,15 +147,15 @@ def _ply_palm(folder: Path) -> Path:
     return path
 
 
-def test_a_hand_the_engines_cannot_load_stops_the_stage_once(tmp_path, monkeypatch, caplog):
+def test_a_hand_the_engines_cannot_load_stops_the_stage_once(
+    tmp_path, monkeypatch, caplog, demo_data
+):
     """Stage simulate exits 2 with one line naming the hand and the file, not a retry per
     sequence; ``hand check`` says the same before any stage runs."""
     from dexflow.stages.simulate import STAGE
 
     project = _project(tmp_path, "plyhand", _ply_palm)
-    params = load_params(project / "params.yaml")
-    layout = Layout.of(params.data.root, root=project)
-    for name, call in pipeline_stages(params, layout):
+    for name, call in _stages(project, demo_data):
         if name == "simulate@baseline":
             break
         call()
@@ -173,36 +174,55 @@ def test_a_hand_the_engines_cannot_load_stops_the_stage_once(tmp_path, monkeypat
 # --------------------------------------------------------------------- the whole pipeline
 
 
+DEMO = ["demo.objects=[061_foam_brick]", "demo.min_frames=40", "demo.max_frames=45"]
+
+
 def _project(tmp_path: Path, name: str, build) -> Path:
     """A project folder with this repository's conf/, the hand ``name`` built by ``build`` in
-    conf/hand/ and proposed there by ``hand init``, params for a two-sequence demo."""
+    conf/hand/ and proposed there by ``hand init``, params for a two-sequence demo of 40-45
+    frames and a quick refinement (:mod:`tests.quick_pipeline`)."""
     project = tmp_path / "project"
     shutil.copytree(project_root() / "conf", project / "conf")
     folder = project / "conf" / "hand"
     model = build(folder)
     init_hand(model, folder / f"{name}.yaml")
-    overrides = [
-        f"hand={name}",
-        "demo.objects=[061_foam_brick]",
-        "demo.min_frames=60",
-        "demo.max_frames=70",
-        "simulate.max_frames=2",
-        "run=sequential",
-    ]
-    compose_params(overrides, project / "params.yaml", config_dir=project / "conf")
+    overrides = [f"hand={name}", *DEMO, "simulate.max_frames=2", "run=sequential"]
+    compose_params(overrides + quick_pipeline.overrides(), project / "params.yaml",
+                   config_dir=project / "conf")  # fmt: skip
     return project
+
+
+@pytest.fixture(scope="module")
+def demo_data(tmp_path_factory) -> Path:
+    """The demo stage's output for :func:`_project`'s params, made once: the demo does not
+    depend on the hand, so each hand's project starts from a copy."""
+    project = tmp_path_factory.mktemp("demo") / "project"
+    compose_params(DEMO, project / "params.yaml")
+    params = load_params(project / "params.yaml")
+    layout = Layout.of(params.data.root, root=project)
+    for name, call in pipeline_stages(params, layout):
+        if name == "demo":
+            call()
+            return project / layout.data_root
+    raise AssertionError("no demo stage")
+
+
+def _stages(project: Path, demo_data: Path):
+    """The pipeline's stages after the demo (copied from ``demo_data``), as bench runs them."""
+    params = load_params(project / "params.yaml")
+    layout = Layout.of(params.data.root, root=project)
+    shutil.copytree(demo_data, project / layout.data_root)
+    return [(name, call) for name, call in pipeline_stages(params, layout) if name != "demo"]
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("shape", sorted(set(PUBLIC_SHAPES) - {"world_rooted_left"}))
-def test_public_shaped_hand_runs_every_stage(tmp_path, shape):
+def test_public_shaped_hand_runs_every_stage(tmp_path, shape, demo_data):
     """(The left world-rooted hand runs every stage through `dvc repro` below.)"""
     project = _project(tmp_path, shape, PUBLIC_SHAPES[shape])
-    params = load_params(project / "params.yaml")
-    layout = Layout.of(params.data.root, root=project)
-    results = {name: call() for name, call in pipeline_stages(params, layout)}
+    results = {name: call() for name, call in _stages(project, demo_data)}
     for name, summary in results.items():
-        if name in ("demo", "hand", "metrics"):
+        if name in ("hand", "metrics"):
             continue
         assert summary["num_ok"] == summary["num_sequences"] == 2, (name, summary)
     assert results["simulate@refine"]["frames_evaluated"] > 0

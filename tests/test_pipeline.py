@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from tests import quick_pipeline
+
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
 
@@ -48,9 +50,14 @@ def project(tmp_path_factory) -> Path:
     demo = dst / "conf" / "demo" / "default.yaml"
     text = demo.read_text().replace("objects: []", "objects: [061_foam_brick]")
     assert "sequences_per_object: 2" in text  # two sequences of the one object
-    demo.write_text(text)
+    demo.write_text(
+        text.replace("min_frames: 60", "min_frames: 40").replace(
+            "max_frames: 150", "max_frames: 60"
+        )
+    )
     simulate = dst / "conf" / "simulate" / "default.yaml"
     simulate.write_text(simulate.read_text().replace("max_frames: 0", "max_frames: 3"))
+    quick_pipeline.write_conf(dst / "conf")
     _run([sys.executable, "-m", "dexflow.tools.cli", "params"], dst)
     _run(["git", "init", "-q", "-b", "main"], dst)
     _run(["git", "config", "user.email", "test@dexflow.invalid"], dst)
@@ -84,21 +91,19 @@ def test_repro_then_noop_then_only_the_changed_stage(project):
     allegro.write_text(allegro.read_text() + "\n# edited\n")
     assert _ran(_run(["dvc", "repro"], project)) == ["hand"]
 
-    _run(
-        [sys.executable, "-m", "dexflow.tools.cli", "params", "scale_align.sdf_spacing_m=0.003"],
-        project,
-    )
-    changed = _run(["dvc", "repro"], project)
-    assert "Running stage 'scale_align'" in changed
-    assert "Running stage 'demo" not in changed
+    # A parameter of one stage reruns that stage and those that read its outputs, no other.
+    _run([sys.executable, "-m", "dexflow.tools.cli", "params", "metrics.pd_violation_m=0.004"],
+         project)  # fmt: skip
+    assert _ran(_run(["dvc", "repro"], project)) == ["hand", "metrics", "report"]
 
-    # Your own data (here: the demo's files as if they were yours): no demo stage to run.
+    # Your own data (here: the demo's files as if they were yours): no demo stage to run
+    # (tests/test_readme.py runs the whole pipeline on data of one's own).
     _run(
         [sys.executable, "-m", "dexflow.tools.cli", "params", "data=custom", "data.root=data/demo"],
         project,
     )
-    custom = _run(["dvc", "repro"], project)
-    assert "Running stage 'demo" not in custom and "Running stage 'report'" in custom
+    custom = _ran(_run(["dvc", "repro"], project))
+    assert "report" in custom and not [stage for stage in custom if stage.startswith("demo")]
 
 
 def _ran(output: str) -> list[str]:
@@ -135,10 +140,11 @@ def _assert_one_number_per_name(metrics: Path) -> None:
 
 
 def test_dvc_exp_run_composes_hydra_overrides(project):
+    _run([sys.executable, "-m", "dexflow.tools.cli", "params"], project)  # conf/ as committed
     _run(["git", "add", "-A"], project)
     _run(["git", "commit", "-qm", "after repro", "--allow-empty"], project)
-    _run(["dvc", "exp", "run", "-S", "scale_align.surface_samples=512"], project)
+    _run(["dvc", "exp", "run", "-S", "metrics.pd_violation_m=0.0042"], project)
     params = (project / "params.yaml").read_text()
-    assert "surface_samples: 512" in params
+    assert "pd_violation_m: 0.0042" in params
     shown = json.loads(_run(["dvc", "exp", "show", "--json"], project))
-    assert "512" in json.dumps(shown)
+    assert "0.0042" in json.dumps(shown)

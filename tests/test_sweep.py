@@ -23,6 +23,7 @@ from dexflow.pipeline.registry import load_stages, upstream_stages
 from dexflow.pipeline.validity import params_values, stage_key
 from dexflow.tools.experiments import collect_multirun
 from dexflow.tools.sweep import main, run_job
+from tests import quick_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 UPSTREAM_OF_CONTACT = [
@@ -361,6 +362,7 @@ def project(tmp_path_factory) -> Path:
     _edit(demo, "max_frames: 150", "max_frames: 40")
     _edit(dst / "conf" / "simulate" / "default.yaml", "max_frames: 0", "max_frames: 3")
     _edit(dst / "conf" / "config.yaml", "- run: local", "- run: sequential")
+    quick_pipeline.write_conf(dst / "conf")
     _run([sys.executable, "-m", "dexflow.tools.cli", "params"], dst, dst)
     for cmd in (["git", "init", "-q", "-b", "main"], ["git", "add", "-A"],
                 ["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "init"],

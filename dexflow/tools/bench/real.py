@@ -75,7 +75,7 @@ def bench_real(
     ``root`` holds canonical sequences (``dexflow convert``). For every hand the stages run in
     ``work/<hand>`` (a temporary directory by default) with the project's ``conf/`` defaults
     plus ``overrides`` (Hydra syntax, e.g. ``simulate=both``), and the metrics stage's aggregates
-    are tabulated per method: the numbers of the README's "Real data" section. ``sequences > 0``
+    are tabulated per method: the numbers of docs/results.md. ``sequences > 0``
     takes that many evenly spaced sequences.
 
     After the metrics' table the report says why targets are missed: per method how the grasp
