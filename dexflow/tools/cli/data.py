@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import logging
+import shlex
 import sys
 import tempfile
 from pathlib import Path
@@ -24,33 +25,58 @@ def _cmd_params(args: argparse.Namespace) -> int:
     it (:class:`~dexflow.hands.robot.RobotHand`: the model read, every link and joint name the
     hand yaml gives checked against it) before it replaces params.yaml: a hand naming a missing
     link stops here (HandConfigError, exit 2), not in retarget after scale_align ran on every
-    sequence.
+    sequence. params.yaml starts with a comment naming the overrides
+    (:func:`~dexflow.config.params_header`).
+
+    ``--check`` without overrides composes with those params.yaml records, or, if it records
+    none (``dvc exp run`` wrote it), with the group choices its sections show
+    (:func:`~dexflow.config.infer_choices`), so that its advice keeps a ``data=`` choice.
     """
-    from dexflow.config import compose_params, load_params, project_root
+    from dexflow.config import (
+        compose_params,
+        infer_choices,
+        load_params,
+        params_header,
+        project_root,
+        recorded_overrides,
+        without_header,
+    )
     from dexflow.hands.robot import RobotHand
     from dexflow.io.atomic import atomic_path
     from dexflow.io.layout import Layout
 
     root = project_root()
     target = root / "params.yaml"
+    overrides, source = list(args.overrides), "given"
+    if args.check and not overrides and target.is_file():
+        recorded = recorded_overrides(target)
+        if recorded is not None:
+            overrides, source = recorded, "recorded in its first line"
+        else:
+            overrides = infer_choices(target, config_dir=root / "conf")
+            source = (
+                "inferred from its sections; it records no overrides, as `dvc exp run` writes it"
+            )
     with tempfile.TemporaryDirectory() as tmp:
-        composed = compose_params(args.overrides, Path(tmp) / "params.yaml")
+        composed = compose_params(overrides, Path(tmp) / "params.yaml")
         RobotHand(load_params(composed).hand, Layout(root=root).hand_dir)
-        if not args.check:
-            with atomic_path(target) as out:
-                out.write_bytes(composed.read_bytes())
-            print(f"wrote {target}")
-            return 0
         fresh = composed.read_text()
-    current = target.read_text() if target.is_file() else ""
+    if not args.check:
+        with atomic_path(target) as out:
+            out.write_text(params_header(overrides) + fresh)
+        print(f"wrote {target}")
+        return 0
+    current = without_header(target.read_text()) if target.is_file() else ""
+    command = shlex.join(["dexflow", "params", *overrides])
+    how = f" with {shlex.join(overrides)} ({source})" if overrides else ""
     if fresh == current:
-        print(f"{target} is up to date with conf/")
+        print(f"{target} is up to date with conf/ composed{how or ' with its defaults'}")
         return 0
     sys.stdout.writelines(
         difflib.unified_diff(current.splitlines(True), fresh.splitlines(True), str(target), "conf/")
     )
     print(
-        f"\n{target} differs from the composition of conf/: run `dexflow params`", file=sys.stderr
+        f"\n{target} differs from the composition of conf/{how}: run `{command}`", file=sys.stderr
     )
     return 1
 
