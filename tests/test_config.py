@@ -241,8 +241,40 @@ def test_dexflow_help_says_what_the_command_is_for(capsys):
         build_parser().parse_args(["--help"])
     text = capsys.readouterr().out
     assert "robot-hand trajectories" in text and "dvc repro" in text
-    for command in ("params", "validate", "demo", "convert", "hand", "bench", "report", "view"):
+    for command in (
+        "params", "validate", "demo", "convert", "hand", "bench", "report", "view", "exp"
+    ):  # fmt: skip
         assert command in text
+
+
+def _subcommands(parser, prefix=()):
+    """(command words, parser, its one-line help) of every subcommand, at every depth."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {a.dest: a.help for a in action._choices_actions}
+            for name, sub in action.choices.items():
+                yield (*prefix, name), sub, helps.get(name)
+                yield from _subcommands(sub, (*prefix, name))
+
+
+def test_every_subcommand_says_what_it_does():
+    """`dexflow SUB --help` opens with a description of at least a sentence, and `dexflow
+    --help` (or `dexflow hand --help`) lists each subcommand with a line of help."""
+    from dexflow.tools.cli import build_parser
+
+    found = list(_subcommands(build_parser()))
+    assert len(found) >= 12, [words for words, _, _ in found]
+    for words, parser, line in found:
+        command = "dexflow " + " ".join(words)
+        assert line, f"{command}: no line in the parent's list of subcommands"
+        description = " ".join((parser.description or "").split())
+        assert len(description) >= 40 and description.endswith("."), (
+            f"{command} --help: no description (a sentence saying what it does): {description!r}"
+        )
+        shown = " ".join(parser.format_help().split())
+        assert description[:60] in shown, f"{command} --help does not show its description"
 
 
 def test_demo_command_takes_its_options_from_the_schema(tmp_path, capsys):

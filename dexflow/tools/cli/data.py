@@ -12,6 +12,7 @@ from pathlib import Path
 
 from dexflow.data.formats import ConvertOptions
 from dexflow.params import DemoConfig
+from dexflow.tools.cli.helptext import HelpFormatter
 from dexflow.tools.cli.schema import add_schema_options, options_from, schema_help
 
 __all__ = ["add_commands"]
@@ -199,13 +200,44 @@ def _cmd_view(args: argparse.Namespace) -> int:
 
 def add_commands(sub) -> None:
     """Add this module's subcommands to the ``dexflow`` parser's subparsers."""
-    p = sub.add_parser("params", help="compose conf/ into params.yaml")
-    p.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. hand=allegro")
-    p.add_argument("--check", action="store_true", help="only report drift (exit 1 if any)")
+    p = sub.add_parser(
+        "params",
+        help="compose conf/ into params.yaml",
+        description="Compose conf/ with Hydra overrides into params.yaml, the file the DVC "
+        "stages read, after checking every value and building the hand as the stages will. "
+        "The first line of params.yaml records the overrides. --check writes nothing: it "
+        "shows how params.yaml differs from conf/ composed with the same overrides (those "
+        "given, else those params.yaml records or its sections show) and exits 1 if it does.",
+        epilog="examples:\n  dexflow params                       # the defaults of conf/config.yaml\n"
+        "  dexflow params data=generic hand=allegro refine.w_pen=2\n"
+        "  dexflow params --check               # after editing conf/",
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument(
+        "overrides", nargs="*", metavar="OVERRIDE",
+        help="Hydra overrides: a group choice (hand=allegro, data=generic, experiment=no_temporal) "
+        "or a value (refine.w_pen=2)",
+    )  # fmt: skip
+    p.add_argument(
+        "--check", action="store_true", help="only show the drift from conf/ (exit 1 if any)"
+    )
     p.set_defaults(func=_cmd_params)
 
-    p = sub.add_parser("validate", help="check sequence files (.npz or directories)")
-    p.add_argument("paths", nargs="+")
+    p = sub.add_parser(
+        "validate",
+        help="check sequence files (.npz or directories)",
+        description="Check sequence files against dexflow's canonical format (the fields, "
+        "shapes, units and frames the pipeline reads) and print one line per file: ok, or "
+        "FAIL and why. With --data-root, also load each object mesh as scale_align will. "
+        "Exit status 1 if any file is invalid.",
+        epilog="examples:\n  dexflow validate data/generic --data-root data/generic\n"
+        "  dexflow validate data/demo/sequences/025_mug__00_power.npz",
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument(
+        "paths", nargs="+", metavar="PATH",
+        help="sequence .npz files, or data roots / folders holding them (sequences/*.npz)",
+    )  # fmt: skip
     p.add_argument("--data-root", default=None, help="check that meshes exist below this root")
     p.set_defaults(func=_cmd_validate)
 
@@ -215,7 +247,7 @@ def add_commands(sub) -> None:
         description="Generate the demo dataset outside the pipeline, with the `demo` and `run` "
         "sections of conf/ and Hydra overrides of them: every option is a field of the schema.",
         epilog=schema_help(DemoConfig, "demo") + "\n\nrun.n_jobs=N: worker processes",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("out", help="the data root to write (sequences/, meshes/)")
     p.add_argument(
@@ -230,6 +262,9 @@ def add_commands(sub) -> None:
         description="Convert source folders of a dataset (or its root) into one data root. "
         "Exit status 0 when at least one sequence was written and none failed; sequences "
         "without an object model are skipped (listed), unless --strict.",
+        epilog="examples:\n  dexflow convert dexycb ~/DexYCB/20200709-subject-01 data/dexycb\n"
+        "  dexflow convert generic my_captures data/generic && dexflow params data=generic",
+        formatter_class=HelpFormatter,
     )
     p.add_argument("adapter", choices=["dexycb", "ho3d", "grab", "generic"])
     p.add_argument(
@@ -239,7 +274,15 @@ def add_commands(sub) -> None:
     add_schema_options(p, ConvertOptions, {"side": ["right", "left", "both"]})
     p.set_defaults(func=_cmd_convert)
 
-    p = sub.add_parser("view", help="write a rerun recording (.rrd) of a sequence")
+    p = sub.add_parser(
+        "view",
+        help="write a rerun recording (.rrd) of a sequence",
+        description="Write a rerun recording of one sequence of the pipeline's outputs: the "
+        "human keypoints, the object and the robot hand of one of its trajectories frame by "
+        "frame, fingers coloured by contact; --open starts the rerun viewer on it.",
+        epilog="example:\n  dexflow view 025_mug__00_power --trajectory refine --open",
+        formatter_class=HelpFormatter,
+    )
     p.add_argument("sequence", help="sequence name (e.g. 025_mug__00_power) or a sequence .npz")
     p.add_argument(
         "--trajectory",

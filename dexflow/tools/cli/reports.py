@@ -6,6 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from dexflow.tools.cli.helptext import HelpFormatter
+
 __all__ = ["add_commands"]
 
 
@@ -187,7 +189,7 @@ def add_commands(sub) -> None:
         epilog="examples:\n  dexflow bench retarget --hands shadow allegro --sequences 3\n"
         "  dexflow bench pipeline --workers 1,2 --scales 1,4\n"
         "  dexflow bench real data/dexycb --subset 8 --jobs 2",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument(
         "what", choices=["fk", "retarget", "refine", "simulate", "pipeline", "real", "long"]
@@ -234,7 +236,7 @@ def add_commands(sub) -> None:
         epilog="examples:\n  dexflow report summary\n"
         "  dexflow report ablation --suite paper\n"
         "  dexflow report ablation --multirun multirun/2024-05-01/12-00-00",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("what", choices=["summary", "ablation"])
     p.add_argument(
@@ -276,7 +278,7 @@ def add_commands(sub) -> None:
         "  dexflow exp --all                  # every metric, one row each\n"
         "  dexflow exp --csv > experiments.csv\n"
         "  dexflow exp --multirun multirun/2024-05-01/12-00-00",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument(
         "--metrics", metavar="A,B",
