@@ -3,18 +3,24 @@
 ``conf/`` (Hydra) is the source of truth. :func:`compose_params` writes ``params.yaml`` with DVC's
 own Hydra composition (``dvc.utils.hydra.compose_and_dump``), so the file is byte-identical to
 what ``dvc exp run`` writes; it is composed beside the target and checked before it replaces
-it, so a rejected value never reaches ``params.yaml``. Stages call :func:`load_params`, which
-validates every section against the schemas of :mod:`dexflow.params`. Every error is one
-:class:`ConfigError` line naming the key (with the keys or options allowed there) or the file,
-line and column of a YAML syntax error. YAML files are checked before anything expands their
-aliases (:func:`dexflow.hands.spec.check_yaml_file`): a "billion laughs" document in ``conf/``
-or ``params.yaml`` is refused in milliseconds instead of hanging the composition.
+it, so a rejected value never reaches ``params.yaml``. ``dexflow params`` writes above it a
+comment naming the overrides it was composed with (:func:`params_header`), so that ``dexflow
+params --check`` composes ``conf/`` the same way; for a file without one (``dvc exp run``
+writes none) :func:`infer_choices` finds the group choices its sections were composed with.
+Stages call :func:`load_params`, which validates every section against the schemas of
+:mod:`dexflow.params`. Every error is one :class:`ConfigError` line naming the key (with the
+keys or options allowed there) or the file, line and column of a YAML syntax error. YAML files
+are checked before anything expands their aliases (:func:`dexflow.hands.spec.check_yaml_file`):
+a "billion laughs" document in ``conf/`` or ``params.yaml`` is refused in milliseconds instead
+of hanging the composition.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
+import re
+import shlex
 import typing
 from pathlib import Path
 from typing import Any
@@ -29,7 +35,18 @@ from dexflow.io.atomic import atomic_path
 from dexflow.io.layout import project_root
 from dexflow.params import PipelineParams, validate
 
-__all__ = ["compose_params", "load_params", "project_root", "yaml_error_message"]
+__all__ = [
+    "compose_params",
+    "infer_choices",
+    "load_params",
+    "params_header",
+    "project_root",
+    "recorded_overrides",
+    "without_header",
+    "yaml_error_message",
+]
+
+_HEADER = re.compile(r"^# Composed from conf/ by `dexflow params(?P<args>[^`]*)`")
 
 
 def yaml_error_message(exc: yaml.YAMLError) -> str:
@@ -155,6 +172,128 @@ def compose_params(
     finally:
         GlobalHydra.instance().clear()
     return output
+
+
+def params_header(overrides: list[str]) -> str:
+    """The comment ``dexflow params`` writes above the composition: the overrides it was
+    composed with (:func:`recorded_overrides` reads them back)."""
+    command = shlex.join(["dexflow", "params", *overrides])
+    return (
+        f"# Composed from conf/ by `{command}`; `dexflow params --check` composes conf/ the same\n"
+        "# way. `dvc exp run` recomposes this file with its own -S overrides only (no -S: the\n"
+        "# defaults of conf/config.yaml), so set a lasting choice there.\n"
+    )
+
+
+def recorded_overrides(path: str | Path) -> list[str] | None:
+    """The overrides :func:`params_header` recorded in ``path``; None if it records none.
+
+    Raises:
+        ConfigError: the comment is there but its overrides cannot be split (an edited quote).
+    """
+    with open(path, encoding="utf-8") as f:
+        first = f.readline()
+    found = _HEADER.match(first)
+    if found is None:
+        return None
+    try:
+        return shlex.split(found["args"])
+    except ValueError as exc:
+        raise ConfigError(
+            f"{path}: line 1: the recorded overrides {found['args'].strip()!r} cannot be read "
+            f"({exc}); expected `dexflow params KEY=VALUE ...` as `dexflow params` writes it"
+        ) from exc
+
+
+def without_header(text: str) -> str:
+    """``params.yaml``'s text without the comment lines above its first key."""
+    lines = text.splitlines(keepends=True)
+    while lines and lines[0].startswith("#"):
+        lines.pop(0)
+    return "".join(lines)
+
+
+def infer_choices(
+    path: str | Path, overrides: list[str] | None = None, config_dir: str | Path | None = None
+) -> list[str]:
+    """The group choices (``data=generic``) that ``path``'s sections were composed with, for a
+    file that records none (:func:`recorded_overrides`; ``dvc exp run -S data=generic`` writes
+    none).
+
+    Every section that differs from the composition of ``conf/`` with ``overrides`` is compared
+    with the same composition choosing each other option of its group (``experiment``, whose
+    files change several sections, is not tried): the option whose section differs in the
+    fewest keys is chosen, if fewer than the default's (a section edited by hand, or composed
+    from a ``conf/`` edited since, still shows its group's option).
+
+    Args:
+        path: A composed ``params.yaml``.
+        overrides: Overrides known to apply (given on the command line).
+        config_dir: The ``conf`` directory; the project's by default.
+
+    Returns:
+        ``overrides`` followed by one ``group=option`` per inferred choice.
+    """
+    config_dir = Path(config_dir or project_root() / "conf").resolve()
+    overrides = list(overrides or [])
+    check_yaml_file(path)
+    current = yaml.safe_load(Path(path).read_text(encoding="utf-8")) or {}
+    given = {o.split("=", 1)[0] for o in overrides}
+    groups = sorted(
+        p.name for p in config_dir.iterdir()
+        if p.is_dir() and p.name != "experiment" and p.name not in given
+    )  # fmt: skip
+    options = {g: sorted(f.stem for f in (config_dir / g).glob("*.yaml")) for g in groups}
+    (default,) = _compose_each(config_dir, [overrides])
+    differ = [g for g in groups if len(options[g]) > 1 and current.get(g) != default.get(g)]
+    tries = [(g, o) for g in differ for o in options[g]]
+    composed = _compose_each(config_dir, [[*overrides, f"{g}={o}"] for g, o in tries])
+    misses: dict[str, dict[str, int]] = {g: {} for g in differ}
+    for (group, option), trial in zip(tries, composed, strict=True):
+        misses[group][option] = _misses(trial.get(group), current.get(group))
+    chosen = {}
+    for group, by_option in misses.items():
+        best = min(by_option, key=by_option.__getitem__)  # ties: the first by name
+        if by_option[best] < _misses(default.get(group), current.get(group)):
+            chosen[group] = best
+    return overrides + [f"{g}={o}" for g, o in chosen.items()]
+
+
+def _flat(tree, prefix: str = "") -> dict[str, Any]:
+    if isinstance(tree, dict):
+        return {
+            k: v for key, value in tree.items() for k, v in _flat(value, f"{prefix}{key}.").items()
+        }
+    return {prefix.rstrip("."): tree}
+
+
+def _misses(found, wanted) -> int:
+    """How many leaf keys of two sections differ (present in one only, or with other values)."""
+    found, wanted = _flat(found), _flat(wanted)
+    absent = object()
+    return sum(found.get(k, absent) != wanted.get(k, absent) for k in found.keys() | wanted.keys())
+
+
+def _compose_each(config_dir: Path, override_sets: list[list[str]]) -> list[dict]:
+    """``conf/`` composed with each list of overrides (resolved, as plain containers)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+
+    _check_yaml_files(config_dir)
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(str(config_dir), version_base=None):
+            return [
+                OmegaConf.to_container(compose("config", overrides=o), resolve=True)
+                for o in override_sets
+            ]
+    except OmegaConfBaseException as exc:
+        raise ConfigError(f"composing {config_dir}: {_omegaconf_message(exc)}") from exc
+    except HydraException as exc:
+        raise ConfigError(_hydra_message(exc)) from exc
+    finally:
+        GlobalHydra.instance().clear()
 
 
 def load_params(path: str | Path = "params.yaml") -> PipelineParams:

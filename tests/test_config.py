@@ -9,7 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from dexflow.config import compose_params, load_params
+from dexflow.config import (
+    compose_params,
+    infer_choices,
+    load_params,
+    params_header,
+    recorded_overrides,
+    without_header,
+)
 from dexflow.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -21,7 +28,8 @@ def _options(group: str) -> list[str]:
 
 def test_committed_params_equal_the_composition_of_conf(tmp_path):
     fresh = compose_params([], tmp_path / "params.yaml", config_dir=ROOT / "conf")
-    assert fresh.read_text() == (ROOT / "params.yaml").read_text(), (
+    assert recorded_overrides(ROOT / "params.yaml") in (None, [])
+    assert fresh.read_text() == without_header((ROOT / "params.yaml").read_text()), (
         "params.yaml is stale: run `dexflow params` and commit it"
     )
 
@@ -163,6 +171,67 @@ def test_dvc_has_a_demo_stage_only_where_the_data_is_the_demo(tmp_path, override
     assert {"scale_align", "retarget@dexflow", "refine", "report"} <= set(listed)
 
 
+def test_params_check_keeps_the_choices_params_yaml_was_composed_with(
+    tmp_path, monkeypatch, capsys
+):
+    """After `dexflow params data=generic`, --check composes with data=generic (recorded in
+    params.yaml's first line): up to date until conf/data/generic.yaml changes, then its advice
+    keeps the choice, and following it brings params.yaml up to date."""
+    from dexflow.tools.cli import main
+
+    shutil.copytree(ROOT / "conf", tmp_path / "conf")
+    monkeypatch.chdir(tmp_path)
+    params = tmp_path / "params.yaml"
+    assert main(["params", "data=generic"]) == 0
+    assert recorded_overrides(params) == ["data=generic"]
+    assert load_params(params).data.name == "generic"
+    capsys.readouterr()
+    assert main(["params", "--check"]) == 0
+    assert "up to date with conf/ composed with data=generic" in capsys.readouterr().out
+    generic = tmp_path / "conf" / "data" / "generic.yaml"
+    generic.write_text(generic.read_text().replace("root: data/generic", "root: data/mine"))
+    assert main(["params", "--check"]) == 1
+    out, err = capsys.readouterr()
+    assert "+  root: data/mine" in out
+    assert "run `dexflow params data=generic`" in err
+    assert main(["params", "data=generic"]) == 0
+    assert load_params(params).data.root == "data/mine"
+    assert main(["params", "--check"]) == 0
+
+
+def test_params_check_infers_the_choices_of_a_file_dvc_wrote(tmp_path):
+    """`dvc exp run -S data=generic -S run=sequential` writes params.yaml without the comment:
+    the choices are read from its sections, also once conf/data/generic.yaml has changed."""
+    from dvc.utils.hydra import compose_and_dump
+
+    conf = tmp_path / "conf"
+    shutil.copytree(ROOT / "conf", conf)
+    params = tmp_path / "params.yaml"
+    compose_and_dump(
+        params, str(conf), None, "config", str(tmp_path), ["data=generic", "run=sequential"]
+    )
+    assert recorded_overrides(params) is None
+    assert infer_choices(params, config_dir=conf) == ["data=generic", "run=sequential"]
+    generic = conf / "data" / "generic.yaml"
+    generic.write_text(generic.read_text().replace("root: data/generic", "root: data/mine"))
+    assert infer_choices(params, ["hand=shadow"], conf) == [
+        "hand=shadow", "data=generic", "run=sequential"
+    ]  # fmt: skip
+    compose_and_dump(params, str(conf), None, "config", str(tmp_path), [])
+    assert infer_choices(params, config_dir=conf) == []
+
+
+def test_params_header_round_trips_its_overrides(tmp_path):
+    overrides = ["data=generic", "data.root=my data/x", "+extra='a b'"]
+    params = tmp_path / "params.yaml"
+    params.write_text(params_header(overrides) + "seed: 0\n")
+    assert recorded_overrides(params) == overrides
+    assert without_header(params.read_text()) == "seed: 0\n"
+    params.write_text("# Composed from conf/ by `dexflow params data.root='x`\nseed: 0\n")
+    with pytest.raises(ConfigError, match=r"params.yaml: line 1: the recorded overrides"):
+        recorded_overrides(params)
+
+
 def test_dexflow_help_says_what_the_command_is_for(capsys):
     """`dexflow --help` names the product, says that `dvc repro` runs the pipeline, and lists
     every subcommand."""
@@ -172,8 +241,40 @@ def test_dexflow_help_says_what_the_command_is_for(capsys):
         build_parser().parse_args(["--help"])
     text = capsys.readouterr().out
     assert "robot-hand trajectories" in text and "dvc repro" in text
-    for command in ("params", "validate", "demo", "convert", "hand", "bench", "report", "view"):
+    for command in (
+        "params", "validate", "demo", "convert", "hand", "bench", "report", "view", "exp"
+    ):  # fmt: skip
         assert command in text
+
+
+def _subcommands(parser, prefix=()):
+    """(command words, parser, its one-line help) of every subcommand, at every depth."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {a.dest: a.help for a in action._choices_actions}
+            for name, sub in action.choices.items():
+                yield (*prefix, name), sub, helps.get(name)
+                yield from _subcommands(sub, (*prefix, name))
+
+
+def test_every_subcommand_says_what_it_does():
+    """`dexflow SUB --help` opens with a description of at least a sentence, and `dexflow
+    --help` (or `dexflow hand --help`) lists each subcommand with a line of help."""
+    from dexflow.tools.cli import build_parser
+
+    found = list(_subcommands(build_parser()))
+    assert len(found) >= 12, [words for words, _, _ in found]
+    for words, parser, line in found:
+        command = "dexflow " + " ".join(words)
+        assert line, f"{command}: no line in the parent's list of subcommands"
+        description = " ".join((parser.description or "").split())
+        assert len(description) >= 40 and description.endswith("."), (
+            f"{command} --help: no description (a sentence saying what it does): {description!r}"
+        )
+        shown = " ".join(parser.format_help().split())
+        assert description[:60] in shown, f"{command} --help does not show its description"
 
 
 def test_demo_command_takes_its_options_from_the_schema(tmp_path, capsys):

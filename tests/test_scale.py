@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ from dexflow.stages.contact import run_contact
 from dexflow.stages.hand import run_hand
 from dexflow.stages.scale_align import run_scale_align
 
+from . import parallel_items
 from .conftest import make_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -110,6 +112,21 @@ def test_local_jobs_are_this_process_and_workers_each_with_one_thread(tmp_path):
     pids = {r.value["pid"] for r in results}
     assert os.getpid() in pids and len(pids) == 2  # this process and the worker
     assert {r.value["torch_threads"] for r in results} == {1}
+
+
+def test_a_worker_that_keeps_a_cache_is_kept(tmp_path):
+    """A worker whose first item fills a per-process cache (400 MB, as a hand model and its
+    meshes) does the following items too: loky's memory-leak guard, which measures the worker
+    after the warm-up task, would replace it mid-stage with "A worker stopped while some jobs
+    were given to the executor"."""
+    items = [(x, tmp_path) for x in range(4)]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        results = map_items(parallel_items.cache_then_work, items, 2, progress=False)
+    assert all(r.ok for r in results), [r.error for r in results]
+    workers = {r.value for r in results} - {os.getpid()}
+    assert len(workers) == 1, f"items ran in {len(workers)} worker processes, expected 1"
+    assert not [w for w in caught if "worker stopped" in str(w.message)]
 
 
 def test_ray_is_optional_and_named_when_missing(monkeypatch):

@@ -155,6 +155,22 @@ _ONE_THREAD = {
 }  # fmt: skip
 
 
+def _init_worker() -> None:
+    """Turn off loky's memory-leak guard in this worker process.
+
+    loky measures a worker's size after its first task and replaces the worker once it has
+    grown 300 MB past it. Here the first task is :func:`_ready`, before any item: the caches a
+    stage fills once per process (the hand model with its meshes, torch's) and an item's working
+    set read as a leak, and the worker was replaced in the middle of the refine stage, with
+    "UserWarning: A worker stopped while some jobs were given to the executor", costing a new
+    worker's start (torch, the stage, the caches again). A worker that really runs out of memory
+    is killed by the OS, and its item fails with ``retry`` (:func:`_map_joblib`).
+    """
+    from joblib.externals.loky import process_executor
+
+    process_executor._USE_PSUTIL = False  # read by the worker's loop after every task
+
+
 def _ready(func: Callable) -> int:
     """Nothing: unpickling ``func`` in a worker imports what it needs (torch, the stage)."""
     return os.getpid()
@@ -207,7 +223,9 @@ def _map_joblib(func: Callable, items: list, n_jobs: int, bar: tqdm) -> list[Ite
 
     workers, ready = None, None
     if processes > 1:
-        workers = get_reusable_executor(max_workers=processes - 1, env=_ONE_THREAD)
+        workers = get_reusable_executor(
+            max_workers=processes - 1, env=_ONE_THREAD, initializer=_init_worker
+        )
         ready = workers.submit(_ready, func)
 
     def pool_failed(i: int, exc: Exception) -> None:

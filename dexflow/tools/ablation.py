@@ -53,12 +53,14 @@ from dexflow.pipeline import provenance
 from dexflow.tools.sweep import STATUS_FILE, UNFINISHED
 
 __all__ = [
+    "METRIC_LABELS",
     "SUITES",
     "Comparison",
     "ExperimentResult",
     "Question",
     "compare",
     "load_result",
+    "metric_label",
     "run_suite",
     "suite_command",
     "suite_experiments",
@@ -140,8 +142,9 @@ SUITES: dict[str, tuple[Question, ...]] = {
     ),
 }
 
-# metric -> (label, unit, higher is better)
-_METRICS = {
+# metric -> (label, unit, higher is better); also the labels of `dexflow exp`
+# (:func:`metric_label`)
+METRIC_LABELS = {
     "keypoint_error_mm": ("keypoint error", "mm", False),
     "fingertip_error_mm": ("fingertip error", "mm", False),
     "time_aligned_cd_mm": ("time-aligned CD", "mm", False),
@@ -158,7 +161,17 @@ _METRICS = {
     "contact.precision": ("contact precision", "", True),
     "contact.recall": ("contact recall", "", True),
     "timing.retarget_dexflow.frames_per_second": ("retarget speed", "frames/s", True),
+    "success_rate": ("replay success", "%", True),
 }
+
+
+def metric_label(metric: str) -> tuple[str, str, bool]:
+    """(label, unit, higher is better) of a metric: a key of :data:`METRIC_LABELS`, else a flat
+    key of ``reports/metrics`` by its last part (``refine.pd_mm`` as ``pd_mm``); an unknown
+    metric is labelled by its key."""
+    if metric in METRIC_LABELS:
+        return METRIC_LABELS[metric]
+    return METRIC_LABELS.get(metric.rpartition(".")[2], (metric, "", False))
 
 
 def suite_experiments(suite: str) -> list[str]:
@@ -309,7 +322,7 @@ def _signed(value: float) -> str:
 
 
 def _label(metric: str) -> str:
-    label, unit, higher = _METRICS.get(metric, (metric, "", False))
+    label, unit, higher = metric_label(metric)
     return f"{label}{' ' + unit if unit else ''} {'↑' if higher else '↓'}"
 
 
@@ -326,7 +339,7 @@ def _finding(experiment: str, method: str, comparisons: dict[str, Comparison]) -
     the metrics no sequence changed."""
     clear, unclear, same = [], [], []
     for metric, c in comparisons.items():
-        label, unit, higher = _METRICS.get(metric, (metric, "", False))
+        label, unit, higher = metric_label(metric)
         unit = f" {unit}" if unit else ""
         spread = f"{_signed(c.delta)} ± {_fmt(c.half_width)}"
         if c.delta == 0 and not c.half_width > 0:  # every paired difference is 0

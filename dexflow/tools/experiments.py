@@ -5,6 +5,7 @@
 and one plot per swept parameter, best values in bold. Failed or incomplete experiments are
 listed, never dropped; runs of another machine than the one compared are listed, not compared.
 It opens with its provenance (:mod:`dexflow.pipeline.provenance`), as the summary does.
+``dexflow exp`` (:mod:`dexflow.tools.headline`) reads the same experiments.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy as np
 from dexflow.pipeline import provenance
 from dexflow.stages.report import METHOD_LABELS, METRICS, cell, pyplot, save_figure
 
-__all__ = ["Experiment", "collect_dvc", "collect_multirun", "write_ablation"]
+__all__ = ["Experiment", "collect_dvc", "collect_multirun", "swept_factors", "write_ablation"]
 
 
 @dataclass
@@ -34,6 +35,7 @@ class Experiment:
     metrics: dict[str, float] = field(default_factory=dict)
     error: str | None = None
     stages: dict[str, dict | None] = field(default_factory=dict)
+    rev: str | None = None  # the git commit of a DVC experiment
 
     @property
     def machine(self) -> str | None:
@@ -118,7 +120,8 @@ def collect_dvc(show: list | dict, timing_dir: str | Path | None = None) -> list
                 error = error.get("msg") or json.dumps(error)
             if error is None and state not in (None, "success"):
                 error = f"{state}, not finished (its metrics would be the baseline's)"
-            found.append(Experiment(str(name), "dvc", params, metrics, error, stages))
+            rev = node.get("rev") or data.get("rev")
+            found.append(Experiment(str(name), "dvc", params, metrics, error, stages, rev))
         for key in ("experiments", "revs"):
             if key in node:
                 visit(node[key], name_hint, state)
@@ -162,17 +165,27 @@ def collect_multirun(root) -> list[Experiment]:
             error = f"stage {status.get('stage')}: {status.get('error')}"
         name = str(job.relative_to(root)) if job != root else root.name
         stages = provenance.stages_of(job / "reports" / "metrics", job / "reports" / "timing")
-        found.append(Experiment(name, "multirun", params, _metrics_only(files), error, stages))
+        metrics = _metrics_only(files) | _speeds(job / "reports" / "timing")
+        found.append(Experiment(name, "multirun", params, metrics, error, stages))
     return found
 
 
-def _swept(experiments: list[Experiment]) -> list[str]:
+def _speeds(timing_dir: Path) -> dict[str, float]:
+    """``timing.<stage>.frames_per_second`` of each stage's record in ``reports/timing``."""
+    out = {}
+    for path in sorted(timing_dir.glob("*.json")):
+        speed = json.loads(path.read_text()).get("frames_per_second")
+        if isinstance(speed, (int, float)) and not isinstance(speed, bool):
+            out[f"timing.{path.stem}.frames_per_second"] = float(speed)
+    return out
+
+
+def _swept(experiments: list[Experiment], skip: tuple[str, ...] = ("data.", "hydra.")) -> list[str]:
     keys = sorted({k for e in experiments for k in e.params})
     return [
         k
         for k in keys
-        if len({_canon(e.params.get(k)) for e in experiments}) > 1
-        and not k.startswith(("data.", "hydra."))
+        if len({_canon(e.params.get(k)) for e in experiments}) > 1 and not k.startswith(skip)
     ]
 
 
@@ -191,11 +204,14 @@ class _Factor:
         return _canon(experiment.params.get(self.name))
 
 
-def _factors(experiments: list[Experiment]) -> list[_Factor]:
-    """The swept keys grouped into factors: keys that split the experiments the same way are
-    one factor, named by its most telling key (``*.name``, then the shortest)."""
+def swept_factors(
+    experiments: list[Experiment], skip: tuple[str, ...] = ("data.", "hydra.")
+) -> list[_Factor]:
+    """The swept keys (but those starting with ``skip``) grouped into factors: keys that split
+    the experiments the same way are one factor, named by its most telling key (``*.name``,
+    then the shortest)."""
     by_split: dict[tuple, list[str]] = {}
-    for key in _swept(experiments):
+    for key in _swept(experiments, skip):
         labels: dict[str, int] = {}
         split = tuple(
             labels.setdefault(_canon(e.params.get(key)), len(labels)) for e in experiments
@@ -272,7 +288,7 @@ def write_ablation(
         _machine_statement(complete, elsewhere, machine),
         "",
     ]
-    factors = _factors(complete)
+    factors = swept_factors(complete)
     if not factors:
         lines += ["No parameter differs between the complete experiments.", ""]
     reference = {f.name: _reference(f, complete) for f in factors}

@@ -17,6 +17,8 @@ Subcommands:
                                     throughput benchmarks (frames/s against baselines)
   view SEQUENCE [--trajectory T] [--open]
                                     write a rerun recording (.rrd) of a sequence
+  exp [--metrics A,B | --all] [--csv] [--multirun DIR]
+                                    the headline metrics of every experiment, side by side
   report summary                    reports/summary.md from the metrics (the `report` stage)
   report ablation --suite paper [--set KEY=VALUE ...] [--no-run]
                                     run the suite's named experiments, reports/ablation.md
@@ -32,6 +34,7 @@ import logging
 import sys
 
 from dexflow.tools.cli import data, hands, reports
+from dexflow.tools.cli.helptext import HelpFormatter
 
 __all__ = ["build_parser", "main"]
 
@@ -40,7 +43,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="dexflow",
         description="\n\n".join(__doc__.split("\n\n")[:2]),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n"
+        "  dexflow params data=generic && dvc repro   # run the pipeline on converted data\n"
+        "  dexflow hand check allegro                 # check a hand before a run\n"
+        "  dexflow exp                                # compare the DVC experiments",
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)

@@ -1,4 +1,4 @@
-"""``python -m dexflow.tools.cli``: the ``dexflow`` command."""
+"""``python -m dexflow.tools.cli`` runs the ``dexflow`` command (:func:`dexflow.tools.cli.main`)."""
 
 import sys
 

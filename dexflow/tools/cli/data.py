@@ -5,12 +5,14 @@ from __future__ import annotations
 import argparse
 import difflib
 import logging
+import shlex
 import sys
 import tempfile
 from pathlib import Path
 
 from dexflow.data.formats import ConvertOptions
 from dexflow.params import DemoConfig
+from dexflow.tools.cli.helptext import HelpFormatter
 from dexflow.tools.cli.schema import add_schema_options, options_from, schema_help
 
 __all__ = ["add_commands"]
@@ -24,33 +26,58 @@ def _cmd_params(args: argparse.Namespace) -> int:
     it (:class:`~dexflow.hands.robot.RobotHand`: the model read, every link and joint name the
     hand yaml gives checked against it) before it replaces params.yaml: a hand naming a missing
     link stops here (HandConfigError, exit 2), not in retarget after scale_align ran on every
-    sequence.
+    sequence. params.yaml starts with a comment naming the overrides
+    (:func:`~dexflow.config.params_header`).
+
+    ``--check`` without overrides composes with those params.yaml records, or, if it records
+    none (``dvc exp run`` wrote it), with the group choices its sections show
+    (:func:`~dexflow.config.infer_choices`), so that its advice keeps a ``data=`` choice.
     """
-    from dexflow.config import compose_params, load_params, project_root
+    from dexflow.config import (
+        compose_params,
+        infer_choices,
+        load_params,
+        params_header,
+        project_root,
+        recorded_overrides,
+        without_header,
+    )
     from dexflow.hands.robot import RobotHand
     from dexflow.io.atomic import atomic_path
     from dexflow.io.layout import Layout
 
     root = project_root()
     target = root / "params.yaml"
+    overrides, source = list(args.overrides), "given"
+    if args.check and not overrides and target.is_file():
+        recorded = recorded_overrides(target)
+        if recorded is not None:
+            overrides, source = recorded, "recorded in its first line"
+        else:
+            overrides = infer_choices(target, config_dir=root / "conf")
+            source = (
+                "inferred from its sections; it records no overrides, as `dvc exp run` writes it"
+            )
     with tempfile.TemporaryDirectory() as tmp:
-        composed = compose_params(args.overrides, Path(tmp) / "params.yaml")
+        composed = compose_params(overrides, Path(tmp) / "params.yaml")
         RobotHand(load_params(composed).hand, Layout(root=root).hand_dir)
-        if not args.check:
-            with atomic_path(target) as out:
-                out.write_bytes(composed.read_bytes())
-            print(f"wrote {target}")
-            return 0
         fresh = composed.read_text()
-    current = target.read_text() if target.is_file() else ""
+    if not args.check:
+        with atomic_path(target) as out:
+            out.write_text(params_header(overrides) + fresh)
+        print(f"wrote {target}")
+        return 0
+    current = without_header(target.read_text()) if target.is_file() else ""
+    command = shlex.join(["dexflow", "params", *overrides])
+    how = f" with {shlex.join(overrides)} ({source})" if overrides else ""
     if fresh == current:
-        print(f"{target} is up to date with conf/")
+        print(f"{target} is up to date with conf/ composed{how or ' with its defaults'}")
         return 0
     sys.stdout.writelines(
         difflib.unified_diff(current.splitlines(True), fresh.splitlines(True), str(target), "conf/")
     )
     print(
-        f"\n{target} differs from the composition of conf/: run `dexflow params`", file=sys.stderr
+        f"\n{target} differs from the composition of conf/{how}: run `{command}`", file=sys.stderr
     )
     return 1
 
@@ -173,13 +200,44 @@ def _cmd_view(args: argparse.Namespace) -> int:
 
 def add_commands(sub) -> None:
     """Add this module's subcommands to the ``dexflow`` parser's subparsers."""
-    p = sub.add_parser("params", help="compose conf/ into params.yaml")
-    p.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. hand=allegro")
-    p.add_argument("--check", action="store_true", help="only report drift (exit 1 if any)")
+    p = sub.add_parser(
+        "params",
+        help="compose conf/ into params.yaml",
+        description="Compose conf/ with Hydra overrides into params.yaml, the file the DVC "
+        "stages read, after checking every value and building the hand as the stages will. "
+        "The first line of params.yaml records the overrides. --check writes nothing: it "
+        "shows how params.yaml differs from conf/ composed with the same overrides (those "
+        "given, else those params.yaml records or its sections show) and exits 1 if it does.",
+        epilog="examples:\n  dexflow params                       # the defaults of conf/config.yaml\n"
+        "  dexflow params data=generic hand=allegro refine.w_pen=2\n"
+        "  dexflow params --check               # after editing conf/",
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument(
+        "overrides", nargs="*", metavar="OVERRIDE",
+        help="Hydra overrides: a group choice (hand=allegro, data=generic, experiment=no_temporal) "
+        "or a value (refine.w_pen=2)",
+    )  # fmt: skip
+    p.add_argument(
+        "--check", action="store_true", help="only show the drift from conf/ (exit 1 if any)"
+    )
     p.set_defaults(func=_cmd_params)
 
-    p = sub.add_parser("validate", help="check sequence files (.npz or directories)")
-    p.add_argument("paths", nargs="+")
+    p = sub.add_parser(
+        "validate",
+        help="check sequence files (.npz or directories)",
+        description="Check sequence files against dexflow's canonical format (the fields, "
+        "shapes, units and frames the pipeline reads) and print one line per file: ok, or "
+        "FAIL and why. With --data-root, also load each object mesh as scale_align will. "
+        "Exit status 1 if any file is invalid.",
+        epilog="examples:\n  dexflow validate data/generic --data-root data/generic\n"
+        "  dexflow validate data/demo/sequences/025_mug__00_power.npz",
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument(
+        "paths", nargs="+", metavar="PATH",
+        help="sequence .npz files, or data roots / folders holding them (sequences/*.npz)",
+    )  # fmt: skip
     p.add_argument("--data-root", default=None, help="check that meshes exist below this root")
     p.set_defaults(func=_cmd_validate)
 
@@ -189,7 +247,7 @@ def add_commands(sub) -> None:
         description="Generate the demo dataset outside the pipeline, with the `demo` and `run` "
         "sections of conf/ and Hydra overrides of them: every option is a field of the schema.",
         epilog=schema_help(DemoConfig, "demo") + "\n\nrun.n_jobs=N: worker processes",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     p.add_argument("out", help="the data root to write (sequences/, meshes/)")
     p.add_argument(
@@ -204,6 +262,9 @@ def add_commands(sub) -> None:
         description="Convert source folders of a dataset (or its root) into one data root. "
         "Exit status 0 when at least one sequence was written and none failed; sequences "
         "without an object model are skipped (listed), unless --strict.",
+        epilog="examples:\n  dexflow convert dexycb ~/DexYCB/20200709-subject-01 data/dexycb\n"
+        "  dexflow convert generic my_captures data/generic && dexflow params data=generic",
+        formatter_class=HelpFormatter,
     )
     p.add_argument("adapter", choices=["dexycb", "ho3d", "grab", "generic"])
     p.add_argument(
@@ -213,7 +274,15 @@ def add_commands(sub) -> None:
     add_schema_options(p, ConvertOptions, {"side": ["right", "left", "both"]})
     p.set_defaults(func=_cmd_convert)
 
-    p = sub.add_parser("view", help="write a rerun recording (.rrd) of a sequence")
+    p = sub.add_parser(
+        "view",
+        help="write a rerun recording (.rrd) of a sequence",
+        description="Write a rerun recording of one sequence of the pipeline's outputs: the "
+        "human keypoints, the object and the robot hand of one of its trajectories frame by "
+        "frame, fingers coloured by contact; --open starts the rerun viewer on it.",
+        epilog="example:\n  dexflow view 025_mug__00_power --trajectory refine --open",
+        formatter_class=HelpFormatter,
+    )
     p.add_argument("sequence", help="sequence name (e.g. 025_mug__00_power) or a sequence .npz")
     p.add_argument(
         "--trajectory",

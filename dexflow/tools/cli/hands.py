@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dexflow.tools.cli.helptext import HelpFormatter
+
 __all__ = ["add_commands"]
 
 
@@ -76,14 +78,23 @@ def _cmd_hand_export(args: argparse.Namespace) -> int:
 
 def add_commands(sub) -> None:
     """Add this module's subcommands to the ``dexflow`` parser's subparsers."""
-    hand = sub.add_parser("hand", help="inspect robot hands").add_subparsers(
-        dest="hand_cmd", required=True
-    )
+    hand = sub.add_parser(
+        "hand",
+        help="bring a robot hand: propose its yaml, check it, export it",
+        description="Bring a robot hand to the pipeline: `hand init` proposes a hand yaml from "
+        "a URDF or MJCF model, `hand check` validates a hand and steps its physics scenes, "
+        "`hand export` writes an MJCF hand as a URDF. `dexflow hand SUBCOMMAND --help` "
+        "describes each.",
+        epilog="example:\n  dexflow hand init models/myhand.urdf && dexflow hand check myhand",
+        formatter_class=HelpFormatter,
+    ).add_subparsers(dest="hand_cmd", required=True)
     p = hand.add_parser(
         "init",
         help="propose a hand yaml from a URDF or MJCF model",
         description="Find the fingers in the kinematic tree, name them by geometry, map their "
         "joints to human keypoints and write a commented hand yaml; guesses are marked GUESS.",
+        epilog="example:\n  dexflow hand init models/myhand.urdf -o conf/hand/myhand.yaml",
+        formatter_class=HelpFormatter,
     )
     p.add_argument("model", help="URDF or MJCF file, or pkg://<package>/<file>")
     p.add_argument(
@@ -100,11 +111,25 @@ def add_commands(sub) -> None:
     p = hand.add_parser(
         "check",
         help="validate a hand, print its tree, build and step every physics scene of the pipeline",
+        description="Load a hand as the stages do (its model, every link and joint its yaml "
+        "names), print its kinematic tree with the human keypoints mapped to it, and build and "
+        "step every physics scene of the pipeline with the project's simulate and replay "
+        "params. Exit status 2 with the reason if the stages would refuse it.",
+        epilog="examples:\n  dexflow hand check allegro\n"
+        "  dexflow hand check conf/hand/myhand.yaml --png myhand.png",
+        formatter_class=HelpFormatter,
     )
     p.add_argument("hand", help="name in conf/hand/ or a yaml path")
     p.add_argument("--png", default=None, help="also draw its zero pose into this PNG")
     p.set_defaults(func=_cmd_hand_check)
-    p = hand.add_parser("export", help="write an MJCF hand as a URDF")
-    p.add_argument("hand")
-    p.add_argument("out")
+    p = hand.add_parser(
+        "export",
+        help="write an MJCF hand as a URDF",
+        description="Write the model of a hand given as MJCF as a URDF (links, joints, limits, "
+        "meshes), for tools that read only URDF such as pybullet.",
+        epilog="example:\n  dexflow hand export shadow shadow.urdf",
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument("hand", help="name in conf/hand/ or a yaml path")
+    p.add_argument("out", help="the URDF file to write")
     p.set_defaults(func=_cmd_hand_export)

@@ -6,6 +6,8 @@ import argparse
 import logging
 from pathlib import Path
 
+from dexflow.tools.cli.helptext import HelpFormatter
+
 __all__ = ["add_commands"]
 
 
@@ -57,9 +59,6 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    import json
-    import subprocess
-
     from dexflow.io.layout import Layout
     from dexflow.stages import report
     from dexflow.tools import experiments as compared
@@ -70,26 +69,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
         return 0
     if args.suite:
         return _ablation_suite(args)
-    experiments = []
-    use_dvc = args.dvc or not args.multirun
-    if use_dvc:
-        command = ["dvc", "exp", "show", "--json"]
-        command += ["-A"] if args.all_commits else ["--rev", args.rev] if args.rev else []
-        done = subprocess.run(command, capture_output=True, text=True)
-        if done.returncode != 0:
-            logging.error("%s failed: %s", " ".join(command), done.stderr.strip())
-            return 1
-        show = json.loads(done.stdout or "[]")
-        if args.rev:  # the workspace is not derived from that baseline
-            show = [node for node in show if node.get("rev") != "workspace"]
-        experiments += compared.collect_dvc(show, Layout().reports / "timing")
-    for folder in args.multirun or []:
-        if not Path(folder).is_dir():
-            logging.error("%s: no such multirun directory", folder)
-            return 1
-        experiments += compared.collect_multirun(folder)
-    if not experiments:
-        logging.error("no experiments found (dvc exp show and --multirun directories are empty)")
+    experiments = _experiments(args)
+    if experiments is None:
         return 1
     from dexflow.pipeline import provenance
 
@@ -97,6 +78,71 @@ def _cmd_report(args: argparse.Namespace) -> int:
     machine = None if args.any_machine else provenance.machine_id()
     out = compared.write_ablation(experiments, out, out.parent / "figures", machine=machine)
     print(f"wrote {out} ({len(experiments)} experiments)")
+    return 0
+
+
+def _experiments(args: argparse.Namespace) -> list | None:
+    """The experiments of ``dvc exp show`` (``--rev``, ``--all-commits``) and/or ``--multirun``
+    directories; None (the reason logged) when there are none or DVC fails."""
+    import json
+    import subprocess
+
+    from dexflow.io.layout import Layout
+    from dexflow.tools import experiments as compared
+
+    experiments = []
+    if args.dvc or not args.multirun:
+        command = ["dvc", "exp", "show", "--json"]
+        command += ["-A"] if args.all_commits else ["--rev", args.rev] if args.rev else []
+        done = subprocess.run(command, capture_output=True, text=True)
+        if done.returncode != 0:
+            logging.error("%s failed: %s", " ".join(command), done.stderr.strip())
+            return None
+        show = json.loads(done.stdout or "[]")
+        if args.rev:  # the workspace is not derived from that baseline
+            show = [node for node in show if node.get("rev") != "workspace"]
+        experiments += compared.collect_dvc(show, Layout().reports / "timing")
+    for folder in args.multirun or []:
+        if not Path(folder).is_dir():
+            logging.error("%s: no such multirun directory", folder)
+            return None
+        experiments += compared.collect_multirun(folder)
+    if not experiments:
+        logging.error("no experiments found (dvc exp show and --multirun directories are empty)")
+        return None
+    return experiments
+
+
+def _cmd_exp(args: argparse.Namespace) -> int:
+    """``dexflow exp``: the experiments' headline metrics side by side."""
+    import csv
+    import sys
+
+    from dexflow.tools.headline import format_table, headline_table
+
+    experiments = _experiments(args)
+    if experiments is None:
+        return 1
+    if args.all:
+        metrics = sorted({k for e in experiments for k in e.metrics})
+    elif args.metrics:
+        metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
+    else:
+        metrics = None
+    table = headline_table(experiments, metrics)
+    if args.csv:
+        writer = csv.writer(sys.stdout, lineterminator="\n")
+        writer.writerow(table.columns)
+        writer.writerows(["" if v is None else v for v in row] for row in table.rows)
+        return 0
+    if args.all:  # a few hundred metrics: one row each, one column per experiment
+        flipped = [[key, *(row[i] for row in table.rows)] for i, key in enumerate(table.columns)]
+        head = [["", *(str(row[0]) for row in table.rows)]]
+        print(format_table(head, flipped[1:], width=max(map(len, table.columns))))
+    else:
+        print(format_table(table.header, table.rows))
+    for note in table.notes:
+        print(f"  {note}")
     return 0
 
 
@@ -133,7 +179,18 @@ def _ablation_suite(args: argparse.Namespace) -> int:
 
 def add_commands(sub) -> None:
     """Add this module's subcommands to the ``dexflow`` parser's subparsers."""
-    p = sub.add_parser("bench", help="benchmarks (print frames/s)")
+    p = sub.add_parser(
+        "bench",
+        help="throughput benchmarks (frames/s against baselines)",
+        description="Time a part of the pipeline and print frames/s: forward kinematics (fk), "
+        "one stage on demo sequences (retarget, refine, simulate), the whole pipeline at "
+        "several worker counts and data sizes (pipeline, written to reports/bench.md), a "
+        "converted dataset (real) or long sequences (long).",
+        epilog="examples:\n  dexflow bench retarget --hands shadow allegro --sequences 3\n"
+        "  dexflow bench pipeline --workers 1,2 --scales 1,4\n"
+        "  dexflow bench real data/dexycb --subset 8 --jobs 2",
+        formatter_class=HelpFormatter,
+    )
     p.add_argument(
         "what", choices=["fk", "retarget", "refine", "simulate", "pipeline", "real", "long"]
     )
@@ -168,7 +225,19 @@ def add_commands(sub) -> None:
     )  # fmt: skip
     p.set_defaults(func=_cmd_bench)
 
-    p = sub.add_parser("report", help="generate reports/summary.md or reports/ablation.md")
+    p = sub.add_parser(
+        "report",
+        help="write reports/summary.md, reports/ablation.md or reports/sweep.md",
+        description="summary: reports/summary.md from reports/metrics (what the `report` "
+        "stage runs). ablation --suite paper: run the paper's ablation experiments "
+        "(conf/experiment/) and write reports/ablation.md, one table per question. ablation "
+        "without --suite: reports/sweep.md, a table and a plot per swept parameter across the "
+        "DVC experiments (dvc exp show) and/or Hydra multirun directories.",
+        epilog="examples:\n  dexflow report summary\n"
+        "  dexflow report ablation --suite paper\n"
+        "  dexflow report ablation --multirun multirun/2024-05-01/12-00-00",
+        formatter_class=HelpFormatter,
+    )
     p.add_argument("what", choices=["summary", "ablation"])
     p.add_argument(
         "--suite", choices=["paper"],  # dexflow.tools.ablation.SUITES (not imported at start-up)
@@ -195,3 +264,37 @@ def add_commands(sub) -> None:
     )  # fmt: skip
     p.add_argument("--out", help="output Markdown file")
     p.set_defaults(func=_cmd_report)
+
+    p = sub.add_parser(
+        "exp",
+        help="the headline metrics of every experiment, side by side",
+        description="Print one row per experiment (DVC experiments of the current commit, or "
+        "the jobs of Hydra multirun directories): its name, commit, the parameters that differ "
+        "between the experiments, then the headline metrics of the refined trajectories (SSR, "
+        "PD, CD, fingertip error, RMS acceleration), their replay success and, for multirun "
+        "jobs, the retargeting speed. docs/experiments.md has the `dvc exp show` command "
+        "that shows the same columns.",
+        epilog="examples:\n  dexflow exp\n  dexflow exp --metrics refine.ssr,retarget.keypoint_error_mm\n"
+        "  dexflow exp --all                  # every metric, one row each\n"
+        "  dexflow exp --csv > experiments.csv\n"
+        "  dexflow exp --multirun multirun/2024-05-01/12-00-00",
+        formatter_class=HelpFormatter,
+    )
+    p.add_argument(
+        "--metrics", metavar="A,B",
+        help="these metrics (flat keys of reports/metrics, e.g. refine.ssr,contact.precision) "
+        "instead of the headline ones",
+    )  # fmt: skip
+    p.add_argument(
+        "--all", action="store_true",
+        help="every metric, one row per metric and one column per experiment",
+    )  # fmt: skip
+    p.add_argument("--csv", action="store_true", help="comma-separated values, full precision")
+    p.add_argument(
+        "--multirun", action="append", metavar="DIR",
+        help="a Hydra multirun directory (repeatable); then DVC only with --dvc",
+    )  # fmt: skip
+    p.add_argument("--dvc", action="store_true", help="with --multirun: DVC experiments too")
+    p.add_argument("--rev", help="experiments derived from this baseline commit (default HEAD)")
+    p.add_argument("-A", "--all-commits", action="store_true", help="experiments of every commit")
+    p.set_defaults(func=_cmd_exp)
