@@ -220,3 +220,31 @@ def test_the_hand_figure_draws_the_posed_hand_and_the_object(tmp_path, hand_proj
 def test_the_hand_figure_is_shown_near_the_top(tmp_path, full_inputs):
     text = _summary(tmp_path, full_inputs, hand_figure=(HAND_FIGURE, "the hand"))
     assert text.index(f"(figures/{HAND_FIGURE})") < text.index("\n## ")
+
+
+# --- ablation figures: the headline metrics that change -----------------------------------------
+
+
+def test_ablation_figures_draw_only_headline_metrics_that_change(tmp_path):
+    from dexflow.tools.experiments import Experiment, write_ablation
+
+    def run(name: str, value: float, ssr: float) -> Experiment:
+        metrics = {"refine.ssr": ssr, "refine.pd_mm": 1.5, "retarget.rms_acc": 2.0,
+                   "baseline.cd_mm": 3.0 + value}  # fmt: skip
+        return Experiment(name, "dvc", {"contact.dis_min_m": value}, metrics, None)
+
+    runs = [run("a", 0.008, 10.0), run("b", 0.010, 30.0), run("c", 0.010, 20.0)]
+    text = write_ablation(runs, tmp_path / "sweep.md", tmp_path / "figures").read_text()
+    section = text.split("## `contact.dis_min_m`")[1].split("\n## ")[0]
+    assert "Figure: 1 headline metrics" in section
+    assert (
+        "Not drawn, flat across the values: refine PD mm ↓, retarget RMS acc rad/s² ↓." in section
+    )
+    assert "| baseline CD mm ↓ |" in section  # not a headline metric: in the table only
+    image = matplotlib.image.imread(tmp_path / "figures" / "ablation_contact_dis_min_m.png")
+    assert image.std() > 0.05
+
+    flat = [run("a", 0.008, 10.0), run("b", 0.010, 10.0)]
+    text = write_ablation(flat, tmp_path / "flat.md", tmp_path / "flat").read_text()
+    assert "No figure: every headline metric is the same at every value." in text
+    assert not (tmp_path / "flat").exists() or not list((tmp_path / "flat").iterdir())
