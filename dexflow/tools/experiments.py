@@ -446,7 +446,9 @@ def _ablation_plot(
     the runs behind each value's mean, written on the axis."""
     columns = min(4, len(shown))
     rows = math.ceil(len(shown) / columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 2.6 * rows), squeeze=False)
+    fig, axes = plt.subplots(
+        rows, columns, figsize=(max(3.2 * columns, 6.0), 2.6 * rows + 0.4), squeeze=False
+    )
     parsed = [json.loads(v) for v in values]
     numeric = all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in parsed)
     x = parsed if numeric else list(range(len(values)))
@@ -462,7 +464,7 @@ def _ablation_plot(
     for ax in np.ravel(axes)[len(shown) :]:
         ax.axis("off")
     total = sum(runs) if runs else len(values)
-    fig.suptitle(f"{key}: headline metrics per value (mean over its runs; {total} runs)",
+    fig.suptitle(f"{key}\nheadline metrics, mean over the runs per value ({total} runs)",
                  fontsize=10)  # fmt: skip
     fig.tight_layout()
     save_figure(fig, path)
