@@ -1,8 +1,11 @@
-"""Static figures (matplotlib, headless) of sequences: object mesh, hand skeleton, contacts."""
+"""Static figures (matplotlib, headless) of sequences: object mesh, hand skeleton, contacts, and
+the robot hand posed on the object (:func:`plot_hand_on_object`)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -18,7 +21,10 @@ from dexflow.io.layout import StageDir
 from dexflow.io.sequence import load_sequence
 from dexflow.objects.mesh import load_mesh
 
-__all__ = ["plot_sequence_frames"]
+if TYPE_CHECKING:
+    from dexflow.hands.robot import RobotHand
+
+__all__ = ["plot_hand_on_object", "plot_sequence_frames", "posed_hand_triangles"]
 
 _FINGER_COLORS = ("tab:red", "tab:orange", "tab:green", "tab:blue", "tab:purple")
 
@@ -70,4 +76,102 @@ def plot_sequence_frames(
     fig.tight_layout()
     with atomic_path(out_png) as tmp:
         fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+
+
+_HAND_RGB = np.array([0.45, 0.55, 0.78])
+_OBJECT_RGB = np.array([0.93, 0.68, 0.35])
+_LIGHT = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])  # world frame, fixed
+
+
+def posed_hand_triangles(hand: RobotHand, q: np.ndarray) -> np.ndarray:
+    """The hand's collision meshes posed by forward kinematics, as world-frame triangles.
+
+    Args:
+        hand: The robot hand.
+        q: (B, dof) configurations in ``hand.joint_names`` order.
+
+    Returns:
+        (B, F, 3, 3) the F triangles of every collision shape, per configuration.
+    """
+    geometries = hand.model.geometries
+    if not geometries:
+        raise ValueError(f"hand '{hand.spec.name}': its model has no collision geometry to draw")
+    links = list(dict.fromkeys(g.link for g in geometries))
+    transforms = hand.link_transforms(q, links).detach().cpu().numpy()  # (B, L, 4, 4)
+    index = {link: i for i, link in enumerate(links)}
+    posed = []
+    for g in geometries:
+        t = transforms[:, index[g.link]]  # (B, 4, 4) link to world
+        vertices = np.asarray(g.mesh.vertices) @ np.swapaxes(t[:, :3, :3], 1, 2) + t[:, None, :3, 3]
+        posed.append(vertices[:, np.asarray(g.mesh.faces)])  # (B, f, 3, 3)
+    return np.concatenate(posed, axis=1)
+
+
+def _shaded(triangles: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+    """(F, 4) colours of ``triangles (F, 3, 3)`` lit from :data:`_LIGHT` (Lambert, two-sided)."""
+    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+    light = 0.35 + 0.65 * np.abs(normals @ _LIGHT)
+    return np.column_stack([np.clip(light[:, None] * rgb, 0, 1), np.ones(len(triangles))])
+
+
+def plot_hand_on_object(
+    hand_triangles: np.ndarray,
+    object_triangles: Sequence[np.ndarray],
+    focus: Sequence[np.ndarray],
+    titles: Sequence[str],
+    out_png: str | Path,
+    title: str,
+    elev: float = 20.0,
+    azim: float = -60.0,
+) -> None:
+    """Draw the posed robot hand and the object side by side at a few frames, one fixed camera.
+
+    Every panel has the same view direction and scale, centred on its own ``focus`` points; hand
+    and object triangles are depth-sorted together (one painter's sort, Lambert shading from a
+    fixed light).
+
+    Args:
+        hand_triangles: (K, F, 3, 3) world-frame hand triangles per panel
+            (:func:`posed_hand_triangles`).
+        object_triangles: K arrays (O, 3, 3) of world-frame object triangles.
+        focus: K arrays (N, 3) of the points each panel must hold (the object's and the
+            fingers'); the rest (a forearm) may leave it.
+        titles: K panel titles.
+        out_png: The PNG to write (atomically).
+        title: The figure's title.
+    """
+    hand_triangles = np.asarray(hand_triangles, dtype=float)
+    count = len(hand_triangles)
+    if count == 0 or not len(object_triangles) == len(focus) == len(titles) == count:
+        raise ValueError(
+            f"plot_hand_on_object: expected as many object meshes, focus sets and titles as hand "
+            f"poses (>= 1), got {count} poses, {len(object_triangles)} meshes, {len(focus)} "
+            f"focus sets, {len(titles)} titles"
+        )
+    boxes = [np.asarray(f, dtype=float).reshape(-1, 3) for f in focus]
+    centres = [(b.min(axis=0) + b.max(axis=0)) / 2 for b in boxes]
+    radius = 0.5 * max(float(np.max(b.max(axis=0) - b.min(axis=0))) for b in boxes)
+    fig = plt.figure(figsize=(3.2 * count, 3.6))
+    for i in range(count):
+        ax = fig.add_subplot(1, count, i + 1, projection="3d")
+        ax.view_init(elev=elev, azim=azim)
+        triangles = np.concatenate([hand_triangles[i], object_triangles[i]])
+        colours = np.concatenate(
+            [_shaded(hand_triangles[i], _HAND_RGB), _shaded(object_triangles[i], _OBJECT_RGB)]
+        )
+        ax.add_collection3d(
+            Poly3DCollection(triangles, facecolors=colours, edgecolors="none", zsort="average")
+        )
+        for set_lim, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centres[i], strict=True):
+            set_lim(c - radius, c + radius)
+        ax.set_box_aspect((1, 1, 1), zoom=1.4)
+        ax.set_axis_off()
+        ax.set_title(titles[i], fontsize=9)
+    fig.suptitle(title, fontsize=10)
+    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.82, wspace=0)
+    with atomic_path(out_png) as tmp:
+        fig.savefig(tmp, dpi=90, metadata={"Software": None})
     plt.close(fig)

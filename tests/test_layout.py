@@ -124,7 +124,12 @@ def test_report_stage_writes_the_layouts_summary_and_figures(stages):
     outs, _ = stages["report"]
     assert Layout().summary_report in outs
     others = [out for out in outs if out != Layout().summary_report]
-    assert others and all(out.parent == Layout().figures for out in others), others
+    tables = [out for out in others if out.suffix == ".csv"]  # the summary's full tables
+    assert tables and all(
+        out == Layout().summary_table(out.stem.removeprefix("summary_")) for out in tables
+    ), tables
+    figures = [out for out in others if out not in tables]
+    assert figures and all(out.parent == Layout().figures for out in figures), figures
 
 
 def test_layout_paths_follow_its_root():

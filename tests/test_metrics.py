@@ -250,12 +250,20 @@ def test_summary_tables_simulation_and_figures(tmp_path):
     assert "0.41" not in grasp.split("Paper rows")[0]  # FVR: the paper defines none
     sim = _section(text, "Simulation").splitlines()
     refine = next(r for r in sim if r.startswith("| DexFlow + refinement"))
-    assert refine.split("|")[1:13] == [" DexFlow + refinement ", " 10.00 ", " 15.00 ", " 0.00 ",
-                                       " 90 ", " 101 ", " 2.50 ", " 25 ", " 4.50 ", " 50 ",
-                                       " 0.62 ", " 0.88 "]  # fmt: skip
+    assert refine.split("|")[1:-1] == [" DexFlow + refinement ", " 10.00 ", " 15.00 ", " 0.00 ",
+                                       " 101 ", " 2.50 ", " 50 ", " 0.62 "]  # fmt: skip
     baseline = next(r for r in sim if r.startswith("| position baseline"))
-    assert baseline.split("|")[10:12] == [" — ", " 0.62 "]  # None: an engine that holds it
-    assert next(r for r in sim if r.startswith("| DexFlow retargeting")).count("—") == 11
+    assert baseline.split("|")[7:9] == [" — ", " 0.62 "]  # None: an engine that holds it
+    assert next(r for r in sim if r.startswith("| DexFlow retargeting")).count("—") == 7
+    # every column, the hidden ones included, at full precision in the CSV the section links
+    assert "[summary_simulation.csv](summary_simulation.csv)" in _section(text, "Simulation")
+    with open(tmp_path / "summary_simulation.csv", newline="") as f:
+        rows = {r["method"]: r for r in csv.DictReader(f)}
+    assert [float(v) for k, v in rows["DexFlow + refinement"].items() if k != "method"] == (
+        pytest.approx([10.0, 15.0, 0.0, 101, 2.5, 50.0, 0.625, 100 * 91 / 101, 25.0, 4.5, 0.875])
+    )  # the two tests agree on 3 + 88 of 101 frames
+    assert rows["position baseline (DexRetarget-style)"]["lost while the fingers closed %"] == ""
+    assert set(rows["DexFlow retargeting"].values()) == {"DexFlow retargeting", ""}
     objects = _section(text, "Per object")
     assert objects.index("003_cracker_box") < objects.index("025_mug")
     for name in ("summary_methods.png", "summary_objects_pd.png", "summary_timeline.png"):
@@ -465,4 +473,4 @@ def test_summary_reports_contact_flicker_the_papers_way(tmp_path):
     assert "| removed, DexFlow vs the baseline (the paper's comparison) | 33 % | 68 % |" in rows
     assert "| removed by the inference after the dual threshold (same trajectory) | 1 % | |" in rows
     assert "| single threshold on the baseline retargeting | 0.92 | |" in rows
-    assert "The inference acts." in rows
+    assert "- The inference acts." in _section(text, "Definitions").splitlines()  # moved down

@@ -91,8 +91,9 @@ def test_upstream_stages_follow_the_outputs_each_stage_depends_on():
     assert "retarget@position" in upstream["simulate@baseline"]
     assert "retarget@position" not in upstream["simulate@refine"]
     assert "refine" in upstream["simulate@refine"]
-    # `report` reads reports/metrics, which every stage but hand (a copy) writes into
-    assert set(upstream["report"]) == {s.name for s in stages} - {"report", "hand"}
+    # `report` reads reports/metrics, which every stage but hand (a copy) writes into, and
+    # data/hand (the hand it draws)
+    assert set(upstream["report"]) == {s.name for s in stages} - {"report"}
 
 
 # --- the reuse rule on a toy pipeline (in process, seconds) --------------------------------------

@@ -296,6 +296,10 @@ class Layout:
     def summary_report(self) -> Path:
         return self.reports / "summary.md"
 
+    def summary_table(self, name: str) -> Path:
+        """A full table of the summary (``reports/summary_<name>.csv``), linked from it."""
+        return self.reports / f"summary_{name}.csv"
+
     def recording(self, name: str) -> Path:
         """A rerun recording (``reports/rerun/<name>.rrd``, written by ``dexflow view``)."""
         return self.reports / "rerun" / f"{name}.rrd"

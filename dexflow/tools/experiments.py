@@ -315,12 +315,18 @@ def write_ablation(
         elif others:
             lines += ["Other swept parameters vary within the rows (means over runs).", ""]
         lines += _ablation_table(values, groups, table, shown)
-        if shown:
+        drawn = [m for m in HEADLINE if m in shown]
+        flat = [m for m in drawn if _flat(table[m])]
+        drawn = [m for m in drawn if m not in flat]
+        if drawn:
             name = "ablation_" + "".join(c if c.isalnum() else "_" for c in factor.name) + ".png"
-            _ablation_plot(plt, factor.name, values, table, shown, figures_dir / name)
+            runs = [len(groups[v]) for v in values]
+            _ablation_plot(plt, factor.name, values, table, drawn, figures_dir / name, runs)
             rel = figures_dir.relative_to(out_md.parent) if figures_dir.is_relative_to(
                 out_md.parent) else figures_dir  # fmt: skip
             lines += ["", f"![{factor.name}]({rel / name})"]
+        if shown:
+            lines += ["", _figure_note(drawn, flat)]
         lines.append("")
     plt.close("all")
     overview = [m for m in ("refine.ssr", "refine.pd_mm", "retarget.keypoint_error_mm")
@@ -412,24 +418,70 @@ def _ablation_table(values: list[str], groups: dict, table: dict, shown: list[st
     return lines
 
 
-def _ablation_plot(plt, key: str, values: list[str], table: dict, shown: list[str], path) -> None:
-    """Each metric against the factor's value (categorical axis for non-numbers)."""
+# The metrics an ablation figure draws (at most 8): the headline of each question; the table
+# beside it holds every metric.
+HEADLINE = (
+    "refine.ssr", "refine.pd_mm", "refine.cd_mm", "refine.keypoint_error_mm",
+    "retarget.keypoint_error_mm", "retarget.rms_acc", "retarget.velocity_kl",
+    "contact.flicker_final",
+)  # fmt: skip
+
+
+def _flat(values: list[float]) -> bool:
+    """No finite value differs from the others by more than 1e-9 of their size (or none is
+    finite): a panel of it would be a flat line."""
+    finite = [v for v in values if math.isfinite(v)]
+    if len(finite) < 2:
+        return True
+    return max(finite) - min(finite) <= 1e-9 * max(1.0, max(abs(v) for v in finite))
+
+
+def _figure_note(drawn: list[str], flat: list[str]) -> str:
+    """What the factor's figure shows and which headline metrics it leaves out as flat."""
+    text = (
+        f"Figure: {len(drawn)} headline metrics, mean over the runs at each value (n runs "
+        "per value on the axis)."
+        if drawn
+        else "No figure: every headline metric is the same at every value."
+    )
+    if flat:
+        text += " Not drawn, flat across the values: " + ", ".join(map(_metric_label, flat)) + "."
+    return text + " Every metric: the table."
+
+
+def _ablation_plot(
+    plt,
+    key: str,
+    values: list[str],
+    table: dict,
+    shown: list[str],
+    path,
+    runs: list[int] | None = None,
+) -> None:
+    """Each metric against the factor's value (categorical axis for non-numbers); ``runs``:
+    the runs behind each value's mean, written on the axis."""
     columns = min(4, len(shown))
     rows = math.ceil(len(shown) / columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 2.6 * rows), squeeze=False)
+    fig, axes = plt.subplots(
+        rows, columns, figsize=(max(3.2 * columns, 6.0), 2.6 * rows + 0.4), squeeze=False
+    )
     parsed = [json.loads(v) for v in values]
     numeric = all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in parsed)
     x = parsed if numeric else list(range(len(values)))
+    ticks = [str(v) + (f"\n(n = {n})" if runs else "") for v, n in zip(parsed, runs or parsed,
+                                                                        strict=True)]  # fmt: skip
     for ax, m in zip(np.ravel(axes), shown, strict=False):
         if numeric:
             ax.plot(x, table[m], marker="o")
         else:  # categories (hands, methods): bars, not a line between them
             ax.bar(x, table[m], color="#4c72b0")
-            ax.set_xticks(x, [str(v) for v in parsed], fontsize=7)
+        ax.set_xticks(x, ticks, fontsize=7)
         ax.set_title(_metric_label(m), fontsize=8)
     for ax in np.ravel(axes)[len(shown) :]:
         ax.axis("off")
-    fig.suptitle(key, fontsize=10)
+    total = sum(runs) if runs else len(values)
+    fig.suptitle(f"{key}\nheadline metrics, mean over the runs per value ({total} runs)",
+                 fontsize=10)  # fmt: skip
     fig.tight_layout()
     save_figure(fig, path)
 

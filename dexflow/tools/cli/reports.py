@@ -64,7 +64,10 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from dexflow.tools import experiments as compared
 
     if args.what == "summary":
-        out = report.write_project_summary(Layout(), out_md=args.out)
+        from dexflow.config import load_params
+
+        params = load_params("params.yaml") if Path("params.yaml").is_file() else None
+        out = report.write_project_summary(Layout(), out_md=args.out, params=params)
         print(f"wrote {out}")
         return 0
     if args.suite:
