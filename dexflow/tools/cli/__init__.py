@@ -17,6 +17,8 @@ Subcommands:
                                     throughput benchmarks (frames/s against baselines)
   view SEQUENCE [--trajectory T] [--open]
                                     write a rerun recording (.rrd) of a sequence
+  export [PROJECT] OUT --format hdf5|lerobot [--method M]
+                                    a project's trajectories as HDF5 or a LeRobot dataset
   report summary                    reports/summary.md from the metrics (the `report` stage)
   report ablation --suite paper [--set KEY=VALUE ...] [--no-run]
                                     run the suite's named experiments, reports/ablation.md
@@ -31,7 +33,7 @@ import argparse
 import logging
 import sys
 
-from dexflow.tools.cli import data, hands, reports
+from dexflow.tools.cli import data, export, hands, reports
 
 __all__ = ["build_parser", "main"]
 
@@ -44,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (data, hands, reports):
+    for module in (data, hands, export, reports):
         module.add_commands(sub)
     return parser
 
