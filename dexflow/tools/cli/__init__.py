@@ -19,6 +19,8 @@ Subcommands:
                                     write a rerun recording (.rrd) of a sequence
   exp [--metrics A,B | --all] [--csv] [--multirun DIR]
                                     the headline metrics of every experiment, side by side
+  export [PROJECT] OUT --format hdf5|lerobot [--method M]
+                                    a project's trajectories as HDF5 or a LeRobot dataset
   report summary                    reports/summary.md from the metrics (the `report` stage)
   report ablation --suite paper [--set KEY=VALUE ...] [--no-run]
                                     run the suite's named experiments, reports/ablation.md
@@ -33,7 +35,7 @@ import argparse
 import logging
 import sys
 
-from dexflow.tools.cli import data, hands, reports
+from dexflow.tools.cli import data, export, hands, reports
 from dexflow.tools.cli.helptext import HelpFormatter
 
 __all__ = ["build_parser", "main"]
@@ -51,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (data, hands, reports):
+    for module in (data, hands, export, reports):
         module.add_commands(sub)
     return parser
 
