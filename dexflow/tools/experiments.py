@@ -449,15 +449,8 @@ def _figure_note(drawn: list[str], flat: list[str]) -> str:
     return text + " Every metric: the table."
 
 
-def _ablation_plot(
-    plt,
-    key: str,
-    values: list[str],
-    table: dict,
-    shown: list[str],
-    path,
-    runs: list[int] | None = None,
-) -> None:
+def _ablation_plot(plt, key: str, values: list[str], table: dict, shown: list[str], path,
+                   runs: list[int] | None = None) -> None:  # fmt: skip
     """Each metric against the factor's value (categorical axis for non-numbers); ``runs``:
     the runs behind each value's mean, written on the axis."""
     columns = min(4, len(shown))
