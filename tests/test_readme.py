@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dexflow.tools.export import read_export
 from tests import quick_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -94,7 +95,7 @@ def project(tmp_path_factory) -> Path:
 @pytest.mark.slow
 def test_every_readme_block_runs(project):
     python_blocks, bash_blocks = _blocks("python"), _blocks("bash")
-    assert len(python_blocks) == 1 and len(bash_blocks) == 4, "a new README block: test it here"
+    assert len(python_blocks) == 1 and len(bash_blocks) == 5, "a new README block: test it here"
 
     # Bring your own data: the snippet with the user's arrays, then the commands
     arrays = dict(np.load(project / "arrays.npz"))
@@ -119,4 +120,10 @@ def test_every_readme_block_runs(project):
     _sh("dvc queue remove --queued", project)
     out = _sh(shlex.join([sys.executable, "-m", "dexflow.tools.cli", *shlex.split(compare)[1:]]),
               project)  # fmt: skip
-    assert "workspace" in out
+    assert "experiment" in out.splitlines()[0] and "SSR" in out.splitlines()[0], out
+
+    # Export: the one sequence, read back
+    (export,) = _commands(bash_blocks[4])
+    _sh(export, project)
+    episodes = read_export(project / "exports" / "refine.h5").episodes
+    assert len(episodes) == 1 and episodes[0].q.shape[0] == arrays["keypoints"].shape[0]
