@@ -200,7 +200,9 @@ def test_the_summary_compares_sequences_that_have_a_baseline():
 # --- the stage, on a box touched by the index finger ------------------------------------------
 
 
-def _params() -> PipelineParams:
+def allegro_box_params() -> PipelineParams:
+    """The allegro hand with a coarse object grid and a few convex parts, sequentially: a
+    small box scene staged in well under a second (also tests/test_report_summary.py)."""
     params = PipelineParams()
     params.hand, _ = load_hand_spec("allegro")
     params.scale_align.sdf_spacing_m = 0.004
@@ -230,8 +232,8 @@ def box_project(tmp_path_factory):
     trimesh.creation.box(extents=(0.04, 0.04, 0.04)).export(root / "meshes" / "box.obj")
     save_sequence(root / "sequences" / "s0.npz", make_sequence(40), data_root=root)
     layout = Layout.of(root, root=root / "project")
-    assert run_scale_align(_params(), layout)["num_ok"] == 1
-    run_hand(_params(), layout)
+    assert run_scale_align(allegro_box_params(), layout)["num_ok"] == 1
+    run_hand(allegro_box_params(), layout)
     return layout
 
 
@@ -255,7 +257,7 @@ def test_the_stage_compares_a_flickering_baseline_with_dexflow(box_project):
     q_base = _index_above_box(hand, layout, hover)
     _save(layout, "dexflow", hand, _index_above_box(hand, layout, touch))
     _save(layout, "position", hand, q_base)
-    summary = run_contact(_params(), layout)
+    summary = run_contact(allegro_box_params(), layout)
     assert summary["num_ok"] == summary["num_compared"] == 1
     seq = load_sequence(layout.scale_align.sequence("s0"), data_root=layout.scale_align.root)
     sdf = ObjectAssets(layout.scale_align.object_of(seq.obj_mesh)).sdf()
@@ -278,6 +280,6 @@ def test_the_stage_compares_a_flickering_baseline_with_dexflow(box_project):
     assert summary["inference_note"].endswith(f"e.g. {example}.")
     # without a baseline the DexFlow figures stay and the comparison is undefined
     layout.retarget("position").sequence("s0").unlink()
-    alone = run_contact(_params(), layout)
+    alone = run_contact(allegro_box_params(), layout)
     assert alone["num_compared"] == 0 and math.isnan(alone["flicker_reduction_vs_baseline"])
     assert alone["flicker_final"] == summary["flicker_final"]

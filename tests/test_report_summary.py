@@ -24,6 +24,7 @@ from dexflow.stages.report import (
     write_summary,
 )
 from dexflow.stats import rate_interval
+from tests.test_contact_flicker import allegro_box_params
 from tests.test_metrics import _metrics_dir, _section
 
 from .conftest import make_sequence
@@ -174,10 +175,8 @@ def test_hand_frames_follow_the_replay_or_spread_evenly():
 def hand_project(tmp_path_factory):
     """A scaled box scene, the allegro hand's staged copy, and a refined trajectory holding the
     hand just above the box."""
-    from dexflow.hands.spec import load_hand_spec
     from dexflow.io.artifacts import Trajectory, write_trajectory
     from dexflow.io.layout import Layout
-    from dexflow.params import PipelineParams, RunParams
     from dexflow.pipeline.labelled import labelled_hand
     from dexflow.stages.hand import run_hand
     from dexflow.stages.scale_align import run_scale_align
@@ -186,12 +185,7 @@ def hand_project(tmp_path_factory):
     (root / "meshes").mkdir()
     trimesh.creation.box(extents=(0.06, 0.06, 0.06)).export(root / "meshes" / "box.obj")
     save_sequence(root / "sequences" / "s0.npz", make_sequence(12), data_root=root)
-    params = PipelineParams()
-    params.hand, _ = load_hand_spec("allegro")
-    params.scale_align.sdf_spacing_m = 0.004
-    params.scale_align.surface_samples = 256
-    params.scale_align.convex.max_hulls = 4
-    params.run = RunParams("sequential", 1)
+    params = allegro_box_params()
     layout = Layout.of(root, root=root / "project")
     assert run_scale_align(params, layout)["num_ok"] == 1
     run_hand(params, layout)
