@@ -55,3 +55,20 @@ def _asset_cache(tmp_path_factory):
         os.environ.pop(CACHE_ENV, None)
     else:
         os.environ[CACHE_ENV] = previous
+
+
+@pytest.fixture(scope="session")
+def reproduced_demo(tmp_path_factory):
+    """A git + DVC copy of this project with a small demo (:func:`tests.quick_pipeline.small_demo`),
+    committed, then ``dvc repro``'d once: ``(folder, what dvc repro printed)``. The slow
+    end-to-end tests share it and change only copies of it (:func:`tests.quick_pipeline.copy_reproduced`)."""
+    import sys
+
+    from tests import quick_pipeline as qp
+
+    project = tmp_path_factory.mktemp("reproduced") / "project"
+    qp.copy_project(project)
+    qp.small_demo(project / "conf")
+    qp.run([sys.executable, "-m", "dexflow.tools.cli", "params"], project, project)
+    qp.run("git init -q -b main && git add -A && git commit -qm init", project)
+    return project, qp.run(["dvc", "repro"], project, project)

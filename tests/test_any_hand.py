@@ -9,9 +9,9 @@ steps every physics scene) and runs every stage of ``dvc.yaml`` on a two-sequenc
 
 from __future__ import annotations
 
+import functools
 import json
 import shutil
-import subprocess
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -186,7 +186,7 @@ def _project(tmp_path: Path, name: str, build) -> Path:
     folder = project / "conf" / "hand"
     model = build(folder)
     init_hand(model, folder / f"{name}.yaml")
-    overrides = [f"hand={name}", *DEMO, "simulate.max_frames=2", "run=sequential"]
+    overrides = [f"hand={name}", *DEMO, "simulate.max_frames=2"]
     compose_params(overrides + quick_pipeline.overrides(), project / "params.yaml",
                    config_dir=project / "conf")  # fmt: skip
     return project
@@ -216,9 +216,8 @@ def _stages(project: Path, demo_data: Path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("shape", sorted(set(PUBLIC_SHAPES) - {"world_rooted_left"}))
+@pytest.mark.parametrize("shape", sorted(PUBLIC_SHAPES))
 def test_public_shaped_hand_runs_every_stage(tmp_path, shape, demo_data):
-    """(The left world-rooted hand runs every stage through `dvc repro` below.)"""
     project = _project(tmp_path, shape, PUBLIC_SHAPES[shape])
     results = {name: call() for name, call in _stages(project, demo_data)}
     for name, summary in results.items():
@@ -232,35 +231,23 @@ def test_public_shaped_hand_runs_every_stage(tmp_path, shape, demo_data):
 
 @pytest.mark.slow
 def test_public_shaped_hand_through_dvc_repro(tmp_path):
-    """The same as a user runs it: `dvc repro` of the whole pipeline with a world-rooted left
-    hand, refine not waiting on replay (the grip is off)."""
+    """The same as a user runs it: `dvc repro` with a world-rooted left hand, up to a stage that
+    reads the hand stage's copy of it (every stage runs with it above), refine not waiting on
+    replay (the grip is off)."""
     project = _project(tmp_path, "world_rooted_left", PUBLIC_SHAPES["world_rooted_left"])
-    for rel in ("dvc.yaml", ".dvcignore", ".gitignore"):
-        shutil.copy2(project_root() / rel, project / rel)
-    shutil.copytree(project_root() / "stages", project / "stages")
-    shutil.copytree(project_root() / "dexflow", project / "dexflow")
-    shutil.copytree(
-        project_root() / ".dvc", project / ".dvc", ignore=shutil.ignore_patterns("tmp", "cache")
-    )
-
-    def run(*cmd: str) -> str:
-        proc = subprocess.run(cmd, cwd=project, capture_output=True, text=True, timeout=900)
-        assert proc.returncode == 0, proc.stdout + proc.stderr
-        return proc.stdout + proc.stderr
-
-    run("git", "init", "-q", "-b", "main")
-    run("git", "-c", "user.email=t@t", "-c", "user.name=t", "add", "-A")
-    run("git", "-c", "user.email=t@t", "-c", "user.name=t", "commit", "-qm", "init")
-    dag = run("dvc", "dag", "refine")  # refine and the stages it waits on
+    quick_pipeline.copy_project(project)
+    run = functools.partial(quick_pipeline.run, cwd=project, project=project)
+    run("git init -q -b main && git add -A && git commit -qm init")
+    dag = run(["dvc", "dag", "refine"])  # refine and the stages it waits on
     assert "contact" in dag and "replay" not in dag  # no replay while the grip is off
-    run("dvc", "repro")
-    out = run(sys.executable, "-m", "dexflow.tools.cli", "hand", "check", "world_rooted_left")
+    run(["dvc", "repro", "retarget@dexflow"])
+    out = run([sys.executable, "-m", "dexflow.tools.cli", "hand", "check", "world_rooted_left"])
     assert "physics (params.yaml, engines mujoco)" in out and "\nok\n" in out
-    for stage in ("simulate/refine", "replay/refine", "replay/retarget"):
-        done = json.loads((project / "data" / stage / "summary.json").read_text())
-        assert done["num_ok"] == done["num_sequences"] == 2, stage
+    done = json.loads((project / "data" / "retarget" / "dexflow" / "summary.json").read_text())
+    assert done["num_ok"] == done["num_sequences"] == 2
 
 
+@pytest.mark.slow
 def test_refine_waits_on_replay_exactly_when_the_grip_reads_it(tmp_path):
     """Stage refine's dvc.yaml dep ``${refine.grip_input}`` follows refine.grip_m: a grip
     without replay@retarget's folder as the dep (or the dep without the grip) is refused."""

@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import json
-import os
 import re
-import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -18,57 +15,20 @@ ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
 
 
-def _run(cmd: list[str], cwd: Path) -> str:
-    env = {
-        **os.environ,
-        "DVC_NO_ANALYTICS": "1",
-        "GIT_AUTHOR_NAME": "t",
-        "GIT_AUTHOR_EMAIL": "t@t",
-        "GIT_COMMITTER_NAME": "t",
-        "GIT_COMMITTER_EMAIL": "t@t",
-    }
-    proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=900)
-    out = proc.stdout + proc.stderr
-    assert proc.returncode == 0, f"{' '.join(cmd)} failed:\n{out}"
-    return out
-
-
 @pytest.fixture(scope="module")
-def project(tmp_path_factory) -> Path:
-    """A fresh git + DVC project: the tracked files of this one, with a two-sequence demo."""
-    dst = tmp_path_factory.mktemp("project")
-    tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True).stdout
-    for rel in tracked.split():
-        if rel.startswith(("conf/", "dexflow/", "stages/", ".dvc/")) or rel in (
-            "dvc.yaml",
-            ".dvcignore",
-            ".gitignore",
-            "pyproject.toml",
-        ):
-            (dst / rel).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(ROOT / rel, dst / rel)
-    demo = dst / "conf" / "demo" / "default.yaml"
-    text = demo.read_text().replace("objects: []", "objects: [061_foam_brick]")
-    assert "sequences_per_object: 2" in text  # two sequences of the one object
-    demo.write_text(
-        text.replace("min_frames: 60", "min_frames: 40").replace(
-            "max_frames: 150", "max_frames: 60"
-        )
+def project(reproduced_demo, tmp_path_factory) -> Path:
+    """A copy of the small demo project after its first `dvc repro` (tests/conftest.py)."""
+    return quick_pipeline.copy_reproduced(
+        reproduced_demo, tmp_path_factory.mktemp("pipeline") / "p"
     )
-    simulate = dst / "conf" / "simulate" / "default.yaml"
-    simulate.write_text(simulate.read_text().replace("max_frames: 0", "max_frames: 3"))
-    quick_pipeline.write_conf(dst / "conf")
-    _run([sys.executable, "-m", "dexflow.tools.cli", "params"], dst)
-    _run(["git", "init", "-q", "-b", "main"], dst)
-    _run(["git", "config", "user.email", "test@dexflow.invalid"], dst)
-    _run(["git", "config", "user.name", "dexflow test"], dst)
-    _run(["git", "add", "-A"], dst)
-    _run(["git", "commit", "-qm", "init"], dst)
-    return dst
 
 
-def test_repro_then_noop_then_only_the_changed_stage(project):
-    out = _run(["dvc", "repro"], project)
+def _run(cmd: list[str], cwd: Path) -> str:
+    return quick_pipeline.run(cmd, cwd, cwd)
+
+
+def test_repro_then_noop_then_only_the_changed_stage(project, reproduced_demo):
+    out = reproduced_demo[1]  # the first `dvc repro`
     assert "Running stage 'demo@demo'" in out and "Running stage 'scale_align'" in out
     summary = json.loads((project / "data/scale_align/summary.json").read_text())
     assert summary["num_ok"] == summary["num_sequences"] == 2
@@ -95,15 +55,6 @@ def test_repro_then_noop_then_only_the_changed_stage(project):
     _run([sys.executable, "-m", "dexflow.tools.cli", "params", "metrics.pd_violation_m=0.004"],
          project)  # fmt: skip
     assert _ran(_run(["dvc", "repro"], project)) == ["hand", "metrics", "report"]
-
-    # Your own data (here: the demo's files as if they were yours): no demo stage to run
-    # (tests/test_readme.py runs the whole pipeline on data of one's own).
-    _run(
-        [sys.executable, "-m", "dexflow.tools.cli", "params", "data=custom", "data.root=data/demo"],
-        project,
-    )
-    custom = _ran(_run(["dvc", "repro"], project))
-    assert "report" in custom and not [stage for stage in custom if stage.startswith("demo")]
 
 
 def _ran(output: str) -> list[str]:

@@ -4,9 +4,6 @@ rule on a toy pipeline, and the real pipeline fanned out by the joblib launcher 
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -31,20 +28,8 @@ UPSTREAM_OF_CONTACT = [
 ]  # fmt: skip
 
 
-def _env(project: Path | None = None) -> dict[str, str]:
-    env = {**os.environ, "DVC_NO_ANALYTICS": "1"}
-    if project is not None:  # stages import the project's copy of dexflow, as the sweep does
-        env["PYTHONPATH"] = os.pathsep.join([str(project), env.get("PYTHONPATH", "")])
-    return env
-
-
-def _run(cmd: list[str], cwd: Path, project: Path | None = None) -> str:
-    proc = subprocess.run(
-        cmd, cwd=cwd, env=_env(project), capture_output=True, text=True, timeout=900
-    )
-    out = proc.stdout + proc.stderr
-    assert proc.returncode == 0, f"{' '.join(cmd)} failed:\n{out}"
-    return out
+def _run(cmd: list[str], cwd: Path, project: Path) -> str:
+    return quick_pipeline.run(cmd, cwd, project)
 
 
 def _compose(overrides: list[str] | None = None):
@@ -330,46 +315,10 @@ def test_the_app_composes_params_as_dvc_does(tmp_path, monkeypatch, capsys):
 # --- the real pipeline, swept with Hydra launchers (slow) ---------------------------------------
 
 
-def _copy_project(dst: Path) -> None:
-    """This project's files as the working tree holds them (tracked and new, not ignored)."""
-    listed = subprocess.run(
-        ["git", "ls-files", "--cached", "--others", "--exclude-standard"],
-        cwd=ROOT, capture_output=True, text=True, check=True,
-    ).stdout  # fmt: skip
-    top = ("dvc.yaml", ".dvcignore", ".gitignore", "pyproject.toml")
-    for rel in listed.splitlines():
-        if (rel.startswith(("conf/", "dexflow/", "stages/", ".dvc/")) or rel in top) and (
-            ROOT / rel
-        ).is_file():
-            (dst / rel).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(ROOT / rel, dst / rel)
-
-
-def _edit(path: Path, old: str, new: str) -> None:
-    text = path.read_text()
-    assert old in text, f"{path}: no {old!r}"
-    path.write_text(text.replace(old, new))
-
-
 @pytest.fixture(scope="module")
-def project(tmp_path_factory) -> Path:
-    """A git + DVC copy of this project with a one-sequence demo, reproduced once."""
-    dst = tmp_path_factory.mktemp("sweep") / "project"
-    _copy_project(dst)
-    demo = dst / "conf" / "demo" / "default.yaml"
-    _edit(demo, "objects: []", "objects: [061_foam_brick]")
-    _edit(demo, "sequences_per_object: 2", "sequences_per_object: 1")
-    _edit(demo, "min_frames: 60", "min_frames: 30")
-    _edit(demo, "max_frames: 150", "max_frames: 40")
-    _edit(dst / "conf" / "simulate" / "default.yaml", "max_frames: 0", "max_frames: 3")
-    _edit(dst / "conf" / "config.yaml", "- run: local", "- run: sequential")
-    quick_pipeline.write_conf(dst / "conf")
-    _run([sys.executable, "-m", "dexflow.tools.cli", "params"], dst, dst)
-    for cmd in (["git", "init", "-q", "-b", "main"], ["git", "add", "-A"],
-                ["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "init"],
-                ["dvc", "repro"]):  # fmt: skip
-        _run(cmd, dst, dst)
-    return dst
+def project(reproduced_demo, tmp_path_factory) -> Path:
+    """A copy of the small demo project after its first `dvc repro` (tests/conftest.py)."""
+    return quick_pipeline.copy_reproduced(reproduced_demo, tmp_path_factory.mktemp("sweep") / "p")
 
 
 @pytest.mark.slow
