@@ -12,7 +12,7 @@ import pytest
 from tests import quick_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("reproduced_demo")]  # one build of it
 
 
 @pytest.fixture(scope="module")

@@ -322,6 +322,7 @@ def project(reproduced_demo, tmp_path_factory) -> Path:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("reproduced_demo")  # one build of it per worker
 def test_joblib_sweep_reuses_upstream_and_gives_each_job_its_metrics(project, tmp_path):
     project_contact = (project / "reports/metrics/contact.json").read_bytes()
     sweep = tmp_path / "multirun"
@@ -354,6 +355,7 @@ def test_joblib_sweep_reuses_upstream_and_gives_each_job_its_metrics(project, tm
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("reproduced_demo")  # one build of it per worker
 def test_failed_jobs_are_recorded_while_the_others_complete(project):
     _run([sys.executable, "-m", "dexflow.tools.sweep", "-m", "simulate.stride=0,5",
           "data.root=data/demo,data/missing"], project, project)  # fmt: skip
