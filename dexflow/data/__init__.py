@@ -1,0 +1,3 @@
+"""The data dexflow makes and reads: the demo generator (:mod:`dexflow.data.demo`), dataset
+readers and adapters (:mod:`dexflow.data.readers`, :mod:`dexflow.data.adapters`).
+"""

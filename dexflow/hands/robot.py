@@ -10,6 +10,7 @@ gradients flow through all of them.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -219,8 +220,15 @@ class RobotHand:
                 geom.mesh, spacing=float(np.sqrt(geom.mesh.area / share)), limit=int(share) // 2
             )
             count = max(4, int(share) - len(edge_pts))
-            pts, faces = trimesh.sample.sample_surface_even(geom.mesh, count, seed=i)
-            if len(pts) < count:  # even sampling may return fewer; top up uniformly
+            # even sampling may return fewer (trimesh warns of it); topped up uniformly below
+            sample_log = logging.getLogger("trimesh.sample")
+            level = sample_log.level
+            sample_log.setLevel(logging.ERROR)
+            try:
+                pts, faces = trimesh.sample.sample_surface_even(geom.mesh, count, seed=i)
+            finally:
+                sample_log.setLevel(level)
+            if len(pts) < count:
                 extra, extra_faces = trimesh.sample.sample_surface(
                     geom.mesh, count - len(pts), seed=i
                 )
