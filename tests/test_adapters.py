@@ -52,10 +52,20 @@ def _make_dexycb(root, side="right"):
     extr = np.hstack(
         [Rotation.from_euler("xyz", [0.3, -0.2, 1.0]).as_matrix(), [[0.1], [0.2], [0.3]]]
     )
+    extr = np.vstack([extr, [0, 0, 0, 1]])
+    tag = np.eye(4)  # the table's tag in DexYCB's world: tilted, off its origin
+    tag[:3, :3] = Rotation.from_euler("xyz", [0.4, 0.1, -0.7]).as_matrix()
+    tag[:3, 3] = [0.05, -0.3, 0.6]
+    extr = tag @ extr  # the camera in the tag's frame is the one the test expects
     (root / "calibration" / "extrinsics_20200702_151821").mkdir(parents=True)
     (root / "calibration" / "extrinsics_20200702_151821" / "extrinsics.yml").write_text(
         yaml.safe_dump(
-            {"extrinsics": {"836212060125": extr.reshape(-1).tolist(), "apriltag": [0] * 12}}
+            {
+                "extrinsics": {
+                    "836212060125": extr[:3].reshape(-1).tolist(),
+                    "apriltag": tag[:3].reshape(-1).tolist(),
+                }
+            }
         )
     )
     seq.mkdir(parents=True)
@@ -74,7 +84,7 @@ def _make_dexycb(root, side="right"):
     cam = seq / "836212060125"
     cam.mkdir()
     hand, poses = _hand(), _poses()
-    world_to_cam = np.linalg.inv(np.vstack([extr, [0, 0, 0, 1]]))
+    world_to_cam = np.linalg.inv(extr) @ tag  # the expected (tag) frame to the camera
     for t in range(T):
         joints = hand[t] @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
         if t == 2:
@@ -89,8 +99,30 @@ def _make_dexycb(root, side="right"):
     return hand, poses
 
 
+def _edit_extrinsics(root, change) -> None:
+    path = root / "calibration" / "extrinsics_20200702_151821" / "extrinsics.yml"
+    data = yaml.safe_load(path.read_text())
+    change(data["extrinsics"])
+    path.write_text(yaml.safe_dump(data))
+
+
+def test_dexycb_without_a_table_tag_stays_in_its_calibration_frame(tmp_path):
+    """Calibrations without ``apriltag`` keep DexYCB's world frame (z no vertical): the same
+    sequence moved by the tag's transform."""
+    _, poses = _make_dexycb(tmp_path / "src")
+    path = tmp_path / "src" / "calibration" / "extrinsics_20200702_151821" / "extrinsics.yml"
+    tag = np.vstack([np.reshape(yaml.safe_load(path.read_text())["extrinsics"]["apriltag"],
+                                (3, 4)), [0, 0, 0, 1]])  # fmt: skip
+    _edit_extrinsics(tmp_path / "src", lambda extr: extr.pop("apriltag"))
+    assert convert("dexycb", tmp_path / "src", tmp_path / "out")["num_ok"] == 1
+    (path,) = (tmp_path / "out" / "sequences").glob("*.npz")
+    seq = load_sequence(path, data_root=tmp_path / "out")
+    np.testing.assert_allclose(seq.obj_pose, tag @ poses, atol=1e-9)
+
+
 @pytest.mark.parametrize("side", ["right", "left"])
 def test_dexycb_uses_the_given_joints_in_world_frame(tmp_path, side):
+    """In the frame of the table's tag (z up), from the camera's labels and the extrinsics."""
     hand, poses = _make_dexycb(tmp_path / "src", side)
     report = convert("dexycb", tmp_path / "src", tmp_path / "out")
     assert report["num_ok"] == 1, report
@@ -468,6 +500,14 @@ def test_converted_data_runs_through_the_pipeline_like_the_demo(tmp_path):
                 root / "calibration" / "extrinsics_20200702_151821" / "extrinsics.yml"
             ).write_text("{}"),
             "'extrinsics'",
+        ),
+        (
+            lambda root: _edit_extrinsics(root, lambda extr: extr.update(apriltag=[0] * 12)),
+            "field 'apriltag': expected a rigid transform",
+        ),
+        (
+            lambda root: _edit_extrinsics(root, lambda extr: extr.update(apriltag=[1, 2])),
+            "field 'apriltag': expected 12 numbers",
         ),
     ],
 )

@@ -7,7 +7,8 @@ Layouts (only the files dexflow reads are listed):
   ``mano_sides``, ``extrinsics``), ``<sequence>/<serial>/labels_%06d.npz`` (``joint_3d
   (1, 21, 3)`` in that camera's frame, ``pose_y (n_obj, 3, 4)``, optional ``pose_m (1, 51)``),
   ``calibration/extrinsics_<name>/extrinsics.yml`` (``extrinsics: {serial: 12 numbers}``, camera
-  to world, row-major 3x4), models ``models/<ycb name>/textured_simple.obj``. 30 fps.
+  to world, row-major 3x4; ``apriltag``, the table's tag to world, where given: the sequences are
+  written in the tag's frame, z up), models ``models/<ycb name>/textured_simple.obj``. 30 fps.
 - **HO-3D** (also DexYCB exported in its layout): ``<sequence>/meta/<frame>.pkl`` below SRC,
   or ``<subject>/<sequence>/meta/<frame>.pkl`` below a dataset root, dicts with
   ``handJoints3D (21, 3)`` (HO-3D order), ``objRot (3,)`` axis-angle, ``objTrans (3,)``,
@@ -89,6 +90,34 @@ def _dexycb(src: Path, options: ConvertOptions) -> Iterator[SourceSequence]:
         )
 
 
+def _rigid(numbers, path: Path, name: str) -> np.ndarray:
+    """(4, 4) from DexYCB's 12 row-major numbers of a 3x4 rigid transform."""
+    try:
+        matrix = np.asarray(numbers, dtype=np.float64).reshape(3, 4)
+    except (TypeError, ValueError) as exc:
+        raise DatasetLayoutError(f"{path}: field {name!r}: expected 12 numbers (3x4)") from exc
+    rotation = matrix[:, :3]
+    if not np.isfinite(matrix).all() or not np.allclose(
+        rotation @ rotation.T, np.eye(3), atol=1e-3
+    ):
+        raise DatasetLayoutError(
+            f"{path}: field {name!r}: expected a rigid transform (a rotation and a translation)"
+        )
+    return np.vstack([matrix, [0.0, 0.0, 0.0, 1.0]])
+
+
+def _table_frame(extrinsics: dict, path: Path) -> np.ndarray:
+    """World to the table's frame, where DexYCB calibrates one: its ``apriltag`` transform (the
+    tag lies on the table, +z up, toward the hands and objects, as DexYCB's own toolkit crops
+    the scene), else the identity (DexYCB's world, whose z is no vertical).
+
+    The replay stage pulls objects along -z onto a table normal to z: in the tag's frame that is
+    gravity; in the calibration's world frame it points along no physical direction."""
+    if "apriltag" not in extrinsics:
+        return np.eye(4)
+    return np.linalg.inv(_rigid(extrinsics["apriltag"], path, "apriltag"))
+
+
 def _read_dexycb(src: Path, meta_path: Path, models: Path, options: ConvertOptions) -> RawSequence:
     """One DexYCB sequence."""
     meta = _read_yaml(meta_path)
@@ -103,8 +132,7 @@ def _read_dexycb(src: Path, meta_path: Path, models: Path, options: ConvertOptio
     inside(src / "calibration", calib_dir, meta_path, "extrinsics", name=True)
     calib = inside(src, f"calibration/{calib_dir}/extrinsics.yml", meta_path, "extrinsics")
     extr = field(_read_yaml(calib), "extrinsics", calib)
-    cam_to_world = np.eye(4)
-    cam_to_world[:3] = np.asarray(field(extr, serial, calib), dtype=np.float64).reshape(3, 4)
+    cam_to_world = _table_frame(extr, calib) @ _rigid(field(extr, serial, calib), calib, serial)
     labels = visible(need(cam_dir, f"camera folder of serial {serial}").glob("labels_*.npz"))
     if not labels:
         raise DatasetLayoutError(f"{seq_dir / serial}: no labels_*.npz files")
