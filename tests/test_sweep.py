@@ -324,33 +324,36 @@ def project(reproduced_demo, tmp_path_factory) -> Path:
 @pytest.mark.slow
 @pytest.mark.xdist_group("reproduced_demo")  # one build of it per worker
 def test_joblib_sweep_reuses_upstream_and_gives_each_job_its_metrics(project, tmp_path):
-    project_contact = (project / "reports/metrics/contact.json").read_bytes()
+    """A parameter of the last stages (metrics): each job reruns only them, its own copy of
+    every output it writes, the rest linked to the project's (the toy pipeline above covers
+    reruns from further up)."""
+    project_metrics = (project / "reports/metrics/metrics.json").read_bytes()
+    stages = [s.name for s in load_stages(project / "dvc.yaml", load_yaml(project / "params.yaml"))]
     sweep = tmp_path / "multirun"
     _run([sys.executable, "-m", "dexflow.tools.sweep", "-m", "hydra/launcher=joblib",
           "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}",
-          "contact.dis_min_m=0.008,0.012"], project, project)  # fmt: skip
+          "metrics.pd_violation_m=0.001,0.008"], project, project)  # fmt: skip
 
     jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
     assert [j.name for j in jobs] == ["0", "1"]
-    contacts = []
-    for job, value in zip(jobs, (0.008, 0.012), strict=True):
+    metrics = []
+    for job, value in zip(jobs, (0.001, 0.008), strict=True):
         status = _status(job)
         assert status["status"] == "ok", status
-        assert status["reused"] == UPSTREAM_OF_CONTACT
-        assert status["ran"][0] == "contact" and "refine" in status["ran"]
-        assert status["ran"][-1] == "report"
-        assert load_yaml(job / "params.yaml")["contact"]["dis_min_m"] == value
-        assert f"contact.dis_min_m={value}" in (job / ".hydra" / "overrides.yaml").read_text()
-        assert (job / "data/scale_align").resolve() == (project / "data/scale_align").resolve()
-        contact = job / "reports/metrics/contact.json"
-        assert contact.is_file() and not contact.is_symlink()
-        assert (job / "reports/metrics/metrics.json").is_file()
-        contacts.append(json.loads(contact.read_text()))
-    assert contacts[0] != contacts[1]
-    assert (project / "reports/metrics/contact.json").read_bytes() == project_contact
+        assert status["ran"] == ["metrics", "report"]
+        assert status["reused"] == [s for s in stages if s not in status["ran"]]
+        assert load_yaml(job / "params.yaml")["metrics"]["pd_violation_m"] == value
+        overrides = (job / ".hydra" / "overrides.yaml").read_text()
+        assert f"metrics.pd_violation_m={value}" in overrides
+        assert (job / "data/refine").resolve() == (project / "data/refine").resolve()
+        path = job / "reports/metrics/metrics.json"
+        assert path.is_file() and not path.is_symlink() and (job / "reports/summary.md").is_file()
+        metrics.append(json.loads(path.read_text()))
+    assert metrics[0]["baseline.fvr"] > metrics[1]["baseline.fvr"]  # frames beyond the threshold
+    assert (project / "reports/metrics/metrics.json").read_bytes() == project_metrics
 
     found = collect_multirun(sweep)  # what `dexflow report ablation --multirun` reads
-    assert [e.params["contact.dis_min_m"] for e in found] == [0.008, 0.012]
+    assert [e.params["metrics.pd_violation_m"] for e in found] == [0.001, 0.008]
     assert all(e.error is None and "contact.flicker_raw" in e.metrics for e in found)
 
 
