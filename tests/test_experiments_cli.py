@@ -7,7 +7,6 @@ from __future__ import annotations
 import csv
 import io
 import json
-import os
 import re
 import shutil
 import subprocess
@@ -19,15 +18,16 @@ from dexflow.errors import ConfigError
 from dexflow.tools.cli import main
 from dexflow.tools.experiments import collect_dvc, collect_multirun
 from dexflow.tools.headline import HEADLINE_METRICS, headline_table
+from tests import quick_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 METRICS = ROOT / "reports" / "metrics"  # the project's own, as `dvc repro` wrote them
-ENV = {**os.environ, "DVC_NO_ANALYTICS": "1", "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t",
-       "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@t"}  # fmt: skip
 
 
 def _run(*cmd: str, cwd: Path) -> str:
-    done = subprocess.run(cmd, cwd=cwd, env=ENV, capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        cmd, cwd=cwd, env=quick_pipeline.env(), capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0, f"{' '.join(cmd)}:\n{done.stdout}\n{done.stderr}"
     return done.stdout
 
