@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import pickle
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from dexflow.data.adapters import HO3D_TO_DEXFLOW, ConvertOptions, DatasetLayoutError, convert
+from dexflow.geometry import world_to_object
 from dexflow.human.mano import FINGERTIP_VERTICES, MANO_TO_DEXFLOW, load_mano
 from dexflow.human.model import forward_keypoints
 from dexflow.io.mirror import MIRROR, unmirror_points, unmirror_transforms
@@ -260,7 +262,7 @@ def test_tracking_loss_frames_are_masked_on_conversion(tmp_path):
     assert list(np.flatnonzero(~seq.valid)) == [12, 13, 14]
 
 
-def _write_ho3d(seq_dir, hand, poses, template=(), obj="025_mug"):
+def _write_ho3d(seq_dir, hand, poses, template=(), obj="025_mug", side="right"):
     """HO-3D-layout frames; ``template`` frames carry the MANO template hand, as DexYCB's do."""
     meta = seq_dir / "meta"
     meta.mkdir(parents=True)
@@ -274,7 +276,7 @@ def _write_ho3d(seq_dir, hand, poses, template=(), obj="025_mug"):
             "objRot": Rotation.from_matrix(poses[t, :3, :3]).as_rotvec(),
             "objTrans": poses[t, :3, 3],
             "objName": obj,
-            "side": "right",
+            "side": side,
         }
         with open(meta / f"{t:04d}.pkl", "wb") as handle:
             pickle.dump(record, handle)
@@ -363,6 +365,128 @@ def test_convert_command_exit_status(tmp_path, capsys):
     assert (
         main(["convert", "ho3d", subjects[1], str(tmp_path / "c"), "--models", str(tmp_path)]) == 1
     )
+
+
+def _session(folder, models, captures, camera_to_world, left=()):
+    """A session in the HO-3D layout: ``captures`` objects resting on one table (z = 0 in the
+    world), each lifted and tilted after 4 frames, seen by one camera (``camera_to_world``);
+    ``left`` captures are left hands. Returns per capture the object axis that is up at rest."""
+    rng = np.random.default_rng(7)
+    objects = {"025_mug": (0.06, 0.04, 0.08), "011_banana": (0.18, 0.04, 0.03)}
+    for name, extents in objects.items():
+        trimesh.creation.box(extents=extents).export(models / name / "textured_simple.obj")
+    to_camera = np.linalg.inv(camera_to_world)
+    n, ramp = 12, np.clip(np.arange(12) - 3, 0, 8)[:, None] / 8
+    ups = []
+    for c in range(captures):
+        name = list(objects)[c % 2]
+        face = Rotation.from_euler("x", 90 * (c % 3 == 2), degrees=True)  # on a side, or not
+        rest = Rotation.from_euler("z", rng.uniform(-np.pi, np.pi)) * face
+        ups.append(rest.inv().apply([0.0, 0.0, 1.0]))
+        corners = trimesh.creation.box(extents=objects[name]).vertices
+        start = [*rng.uniform(-0.15, 0.15, 2), -rest.apply(corners)[:, 2].min()]
+        tilt = Rotation.from_rotvec(ramp * 0.4 * np.array([[1.0, 0.5, 0.0]]))
+        poses = np.repeat(np.eye(4)[None], n, axis=0)
+        poses[:, :3, :3] = (tilt * rest).as_matrix()
+        poses[:, :3, 3] = start + ramp * [0.02, 0.0, 0.15]
+        hand = _hand(n) @ poses[:, :3, :3].mT + poses[:, None, :3, 3]  # carried with it
+        _write_ho3d(folder / f"capture_{c:02d}", hand @ to_camera[:3, :3].T + to_camera[:3, 3],
+                    to_camera @ poses, obj=name, side="left" if c in left else "right")  # fmt: skip
+    return ups
+
+
+def _camera_over_the_table():
+    """Camera-to-world (4, 4): 0.6 m from the table's centre, looking down at it, rolled 25°
+    (so that up has an x component in its frame: mirroring changes it)."""
+    position = np.array([0.1, -0.45, 0.4])
+    forward = -position / np.linalg.norm(position)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    axes = np.stack([right, np.cross(forward, right), forward], axis=1)  # x right, y down
+    out = np.eye(4)
+    out[:3, :3] = axes @ Rotation.from_euler("z", 25, degrees=True).as_matrix()
+    out[:3, 3] = position
+    return out
+
+
+def _lowest_z(out, seq):
+    """(T,) the lowest point of the written object's hull along the written z."""
+    hull = trimesh.load(out / seq.obj_mesh, force="mesh").convex_hull.vertices
+    return (hull @ seq.obj_pose[:, :3, :3].mT + seq.obj_pose[:, None, :3, 3])[..., 2].min(axis=1)
+
+
+def _degrees(a, b):
+    a, b = np.asarray(a) / np.linalg.norm(a), np.asarray(b) / np.linalg.norm(b)
+    return np.degrees(np.arccos(np.clip(np.dot(a, b), -1.0, 1.0)))
+
+
+def _in_object_frame(seq):
+    return world_to_object(seq.keypoints[seq.valid], seq.obj_pose[seq.valid])
+
+
+def test_ho3d_session_is_written_in_its_tables_frame(tmp_path):
+    """Nine captures of one camera, three of them left hands: written z up, the table at z = 0
+    (every object starts on it and never goes below), within 1 degree; each hand where it was
+    on its object. The up vector is fitted in the camera's frame, before left hands are
+    mirrored: fitted on the mirrored ones it would be off by the camera's roll."""
+    camera = _camera_over_the_table()
+    (tmp_path / "models" / "025_mug").mkdir(parents=True)
+    (tmp_path / "models" / "011_banana").mkdir(parents=True)
+    session = tmp_path / "src" / "20201002-subject-08"
+    ups = _session(session, tmp_path / "models", 9, camera, left=(1, 4, 7))
+    options = ConvertOptions(models=str(tmp_path / "models"))
+    report = convert("ho3d", session, tmp_path / "up", options)
+    kept = convert("ho3d", session, tmp_path / "camera", replace(options, camera_frame=True))
+    assert report["num_ok"] == kept["num_ok"] == 9, report
+    table = json.loads((tmp_path / "up" / "convert.json").read_text())["table_frames"]
+    entry = table[str(session)]
+    assert entry["applied"] and entry["captures"] == 9 and entry["dip_share"] == 0, entry
+    assert entry["start_height_mad_m"] < 1e-3
+    up_in_camera = camera[:3, :3].T @ [0.0, 0.0, 1.0]
+    assert _degrees(entry["up"], up_in_camera) < 1.0
+    for c, up in enumerate(ups):
+        name = f"ho3d_20201002-subject-08_capture_{c:02d}.npz"
+        seq = load_sequence(tmp_path / "up" / "sequences" / name)
+        assert seq.mirrored == (c in (1, 4, 7))
+        low = _lowest_z(tmp_path / "up", seq)
+        assert abs(low[0]) < 2e-3 and low.min() > -2e-3, (c, low)
+        rest = unmirror_transforms(seq.obj_pose[0]) if seq.mirrored else seq.obj_pose[0]
+        assert _degrees(rest[:3, :3] @ up, [0.0, 0.0, 1.0]) < 1.0, c
+        camera_seq = load_sequence(tmp_path / "camera" / "sequences" / name)
+        assert abs(_lowest_z(tmp_path / "camera", camera_seq)[0] - low[0]) > 0.05  # not z up
+        np.testing.assert_allclose(_in_object_frame(seq), _in_object_frame(camera_seq), atol=1e-9)
+
+
+def test_ho3d_camera_frame_is_kept_for_a_small_session_or_when_asked(tmp_path, caplog, capsys):
+    """Fewer than 8 captures: the camera's frame, a warning naming the folder and the count.
+    ``--camera-frame``: the camera's frame, whatever the session."""
+    from dexflow.tools.cli import main
+
+    camera = _camera_over_the_table()
+    (tmp_path / "models" / "025_mug").mkdir(parents=True)
+    (tmp_path / "models" / "011_banana").mkdir(parents=True)
+    small, large = tmp_path / "src" / "small", tmp_path / "src" / "large"
+    _session(small, tmp_path / "models", 5, camera)
+    _session(large, tmp_path / "models", 8, camera)
+    models = ["--models", str(tmp_path / "models")]
+    with caplog.at_level("WARNING", logger="dexflow.data.adapters"):
+        assert main(["convert", "ho3d", str(small), str(tmp_path / "a"), *models]) == 0
+    (warning,) = [r.getMessage() for r in caplog.records if "camera's frame" in r.getMessage()]
+    assert str(small) in warning and "5 captures, too few" in warning, warning
+    assert (
+        main(["convert", "ho3d", str(large), str(tmp_path / "b"), *models, "--camera-frame"]) == 0
+    )
+    assert main(["convert", "ho3d", str(large), str(tmp_path / "c"), *models]) == 0
+    for out, folder, n in ((tmp_path / "a", small, 5), (tmp_path / "b", large, 8)):
+        entry = json.loads((out / "convert.json").read_text())["table_frames"][str(folder)]
+        assert not entry["applied"] and entry["captures"] == n, entry
+        seq = load_sequence(out / "sequences" / f"ho3d_{folder.name}_capture_00.npz")
+        with open(folder / "capture_00" / "meta" / "0000.pkl", "rb") as handle:
+            first = pickle.load(handle)
+        np.testing.assert_allclose(seq.obj_pose[0, :3, 3], first["objTrans"], atol=1e-12)
+    entry = json.loads((tmp_path / "c" / "convert.json").read_text())["table_frames"]
+    assert entry[str(large)]["applied"]  # the same 8 captures, without --camera-frame
+    assert "kept the camera's frame" in capsys.readouterr().out
 
 
 def _fake_mano(path):

@@ -20,6 +20,13 @@ then cleans the same way (:func:`write_sequence`):
   fingertip to the object surface, whose median should be a few millimetres for grasping data
   (tens of millimetres mean the object pose and the keypoints are not in the same frame).
 
+Camera-frame data (the HO-3D layout: no extrinsics, no vertical) is written per session, a
+folder of sequences from one camera, in the frame of its table (z up, the table at z = 0), the
+up vector fitted from where the session's objects rest (:mod:`dexflow.data.table`,
+:func:`_convert_session`); ``convert.json`` records each fit under ``table_frames``. Too few
+captures (fewer than 8), a fit whose start heights spread over 3 cm, or ``--camera-frame`` keep
+the camera's frame.
+
 Each source sequence is read on its own: a file that cannot be read (a corrupt pickle, a frame
 file with an unexpected name, a text cell in a CSV) fails that sequence only, with the source
 file named in its error, and the others are converted; ``convert.json`` is always written.
@@ -37,6 +44,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence as Sequence_
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -52,8 +60,9 @@ from dexflow.data.formats import (
     need,
 )
 from dexflow.data.readers import ADAPTERS
+from dexflow.data.table import DIP_M, MAX_START_MAD_M, MIN_CAPTURES, fit_table, table_frame
 from dexflow.errors import DexflowError
-from dexflow.geometry import world_to_object
+from dexflow.geometry import transform_points, world_to_object
 from dexflow.human.cleaning import detect_bad_frames, nearest_index
 from dexflow.human.keypoints import FINGERTIPS
 from dexflow.io.atomic import save_json
@@ -97,8 +106,11 @@ def fingertip_surface_distance(seq: Sequence, mesh, frames: int = 40) -> np.ndar
     return signed_distance(mesh, local).min(axis=1)
 
 
-def write_sequence(raw: RawSequence, dst: Path, options: ConvertOptions) -> dict:
-    """Clean, mirror (left hands), validate and save one sequence; return its report."""
+def _clean_hand(
+    raw: RawSequence, options: ConvertOptions
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The hand as written: ``(keypoints (T, 21, 3), valid, template, missing, lost)``, the
+    masks (T,) bool, keypoints NaN wherever ``valid`` is False."""
     kp = np.array(raw.keypoints, dtype=np.float64)
     template = np.zeros(len(kp), dtype=bool) if raw.template is None else np.asarray(raw.template)
     kp[template] = np.nan
@@ -106,7 +118,12 @@ def write_sequence(raw: RawSequence, dst: Path, options: ConvertOptions) -> dict
     kp[missing] = np.nan
     observed, lost = detect_bad_frames(kp, None, options.jump_threshold_m, fps=raw.fps)
     kp[lost] = np.nan
-    valid = observed.copy()
+    return kp, observed, template, missing, lost
+
+
+def write_sequence(raw: RawSequence, dst: Path, options: ConvertOptions) -> dict:
+    """Clean, mirror (left hands), validate and save one sequence; return its report."""
+    kp, valid, template, missing, lost = _clean_hand(raw, options)
     if not valid.any():
         raise DatasetLayoutError(f"{raw.name}: no frame has a usable hand")
     inside(dst / "meshes", raw.obj_name, raw.name, "obj_name", name=True)
@@ -176,7 +193,9 @@ def convert(
 
     Returns:
         The report, also written to ``DST/convert.json``: per sequence its ``status`` (ok,
-        skipped, failed) with its counts or its ``reason``/``error``, and the totals.
+        skipped, failed) with its counts or its ``reason``/``error``, the totals, and per
+        session of camera-frame data (HO-3D: a folder of sequences) its ``table_frames``
+        entry (:func:`_convert_session`).
 
     Raises:
         DatasetLayoutError: Unknown adapter, a missing source folder, a source that does not
@@ -193,17 +212,19 @@ def convert(
         need(folder, "source dataset folder")
     StageDir(dst).sequences_dir.mkdir(parents=True, exist_ok=True)
     sequences: dict[str, dict] = {}
+    tables: dict[str, dict] = {}
     for folder in sources:
+        sessions: dict[Path, list[SourceSequence]] = {}
         for source in ADAPTERS[adapter](folder, options):
-            try:
-                raws = source.read()
-            except MissingOptionError:
-                raise
-            except Exception as exc:  # one unreadable source sequence never stops the others
-                sequences[source.name] = {"status": "failed", "error": _reason(exc, source)}
-                log.error("%s: %s", source.name, sequences[source.name]["error"])
+            if source.session is not None:
+                sessions.setdefault(source.session, []).append(source)
                 continue
-            _convert_each(raws, source, folder, dst, options, sequences)
+            raws = _read(source, sequences)
+            for raw in raws:
+                if _admit(raw, folder, options, sequences):
+                    _write(raw, source, dst, options, sequences)
+        for session, group in sessions.items():
+            _convert_session(session, group, folder, dst, options, sequences, tables)
     statuses = [entry["status"] for entry in sequences.values()]
     report = {
         "adapter": adapter,
@@ -213,6 +234,7 @@ def convert(
         "num_skipped": statuses.count("skipped"),
         "num_failed": statuses.count("failed"),
         "sequences": sequences,
+        "table_frames": tables,
     }
     save_json(dst / "convert.json", report)
     return report
@@ -224,35 +246,152 @@ def _reason(exc: Exception, source: SourceSequence) -> str:
     return text if str(source.path) in text else f"{text} (source: {source.path})"
 
 
-def _convert_each(
-    raws: list[RawSequence],
+def _read(source: SourceSequence, sequences: dict[str, dict]) -> list[RawSequence]:
+    """The sequences ``source`` holds; none if it cannot be read (recorded as failed)."""
+    try:
+        return source.read()
+    except MissingOptionError:
+        raise
+    except Exception as exc:  # one unreadable source sequence never stops the others
+        sequences[source.name] = {"status": "failed", "error": _reason(exc, source)}
+        log.error("%s: %s", source.name, sequences[source.name]["error"])
+        return []
+
+
+def _admit(
+    raw: RawSequence, folder: Path, options: ConvertOptions, sequences: dict[str, dict]
+) -> bool:
+    """Whether ``raw`` is to be written: not a name an earlier source gave, its object model
+    there (else recorded as failed or skipped)."""
+    if raw.name in sequences:
+        sequences[f"{raw.name} ({folder})"] = {
+            "status": "failed",
+            "error": f"{raw.name}: the same name comes from an earlier source; "
+            f"convert {folder} into another root",
+        }
+        log.error("%s: duplicate sequence name from %s", raw.name, folder)
+        return False
+    if not raw.mesh_path.is_file():
+        reason = f"no object model of '{raw.obj_name}': {raw.mesh_path} is missing"
+        status = "failed" if options.strict else "skipped"
+        key = "error" if options.strict else "reason"
+        sequences[raw.name] = {"status": status, key: reason}
+        (log.error if options.strict else log.warning)("%s: %s", raw.name, reason)
+        return False
+    return True
+
+
+def _write(
+    raw: RawSequence,
     source: SourceSequence,
-    folder: Path,
     dst: Path,
     options: ConvertOptions,
     sequences: dict[str, dict],
 ) -> None:
-    """Write each sequence read from ``source``, recording its entry in ``sequences``."""
+    """Write ``raw``, recording its entry in ``sequences``: ok, or failed with its source."""
+    try:
+        sequences[raw.name] = {"status": "ok", **write_sequence(raw, dst, options)}
+    except MissingOptionError:
+        raise
+    except Exception as exc:  # reported with its source; the others go on
+        sequences[raw.name] = {"status": "failed", "error": _reason(exc, source)}
+        log.error("%s: %s", raw.name, sequences[raw.name]["error"])
+
+
+def _resting_poses(
+    raws: list[RawSequence], options: ConvertOptions
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Per sequence that will be written with a tracked frame: its object's convex-hull
+    vertices and its object poses at its tracked frames, as :func:`write_sequence` cleans them
+    (the first: the object at rest)."""
+    hulls: dict[Path, np.ndarray] = {}
+    out_hulls, out_poses = [], []
     for raw in raws:
-        if raw.name in sequences:
-            sequences[f"{raw.name} ({folder})"] = {
-                "status": "failed",
-                "error": f"{raw.name}: the same name comes from an earlier source; "
-                f"convert {folder} into another root",
-            }
-            log.error("%s: duplicate sequence name from %s", raw.name, folder)
-            continue
-        if not raw.mesh_path.is_file():
-            reason = f"no object model of '{raw.obj_name}': {raw.mesh_path} is missing"
-            status = "failed" if options.strict else "skipped"
-            key = "error" if options.strict else "reason"
-            sequences[raw.name] = {"status": status, key: reason}
-            (log.error if options.strict else log.warning)("%s: %s", raw.name, reason)
-            continue
         try:
-            sequences[raw.name] = {"status": "ok", **write_sequence(raw, dst, options)}
-        except MissingOptionError:
-            raise
-        except Exception as exc:  # reported with its source; the others go on
-            sequences[raw.name] = {"status": "failed", "error": _reason(exc, source)}
-            log.error("%s: %s", raw.name, sequences[raw.name]["error"])
+            _, valid, *_ = _clean_hand(raw, options)
+            pose = _hold_nearest(raw.obj_pose)[valid]
+            if raw.mesh_path not in hulls:
+                hulls[raw.mesh_path] = load_mesh(raw.mesh_path).convex_hull.vertices
+        except Exception:  # left out of the fit; writing it fails it, saying why
+            continue
+        if len(pose) and np.isfinite(pose).all():
+            out_hulls.append(hulls[raw.mesh_path])
+            out_poses.append(pose)
+    return out_hulls, out_poses
+
+
+def _convert_session(
+    session: Path,
+    group: list[SourceSequence],
+    folder: Path,
+    dst: Path,
+    options: ConvertOptions,
+    sequences: dict[str, dict],
+    tables: dict[str, dict],
+) -> None:
+    """Write one session's sequences (one camera, one table) in their table's frame.
+
+    The table is fitted from all of them (:func:`dexflow.data.table.fit_table`) in the camera's
+    frame, before left hands are mirrored: mirroring (x -> -x) keeps z, so a mirrored sequence
+    is z up too. The camera's frame is kept, with a warning, when fewer than
+    :data:`~dexflow.data.table.MIN_CAPTURES` sequences can be fitted or their start heights
+    spread more than :data:`~dexflow.data.table.MAX_START_MAD_M`; and with
+    ``options.camera_frame``. ``tables[str(session)]`` records the fit: ``up`` (in the camera's
+    frame), ``table_height_m`` (along it), ``start_height_mad_m``, ``dip_share`` (over
+    :data:`~dexflow.data.table.DIP_M`), ``captures``, ``applied``, and ``reason`` if not.
+    """
+    read = [(source, _read(source, sequences)) for source in group]
+    admitted = [
+        (source, [raw for raw in raws if _admit(raw, folder, options, sequences)])
+        for source, raws in read
+    ]
+    hulls, poses = _resting_poses([raw for _, raws in admitted for raw in raws], options)
+    transform = None
+    if poses:
+        fit = fit_table(hulls, poses)
+        if options.camera_frame:
+            reason = "--camera-frame given"
+        elif fit.num_captures < MIN_CAPTURES:
+            reason = f"{fit.num_captures} captures, too few to fit (at least {MIN_CAPTURES})"
+        elif fit.start_height_mad_m > MAX_START_MAD_M:
+            reason = (
+                f"start heights spread {fit.start_height_mad_m * 100:.1f} cm (MAD), over "
+                f"{MAX_START_MAD_M * 100:.0f} cm: one camera and one table?"
+            )
+        else:
+            reason = None
+        tables[str(session)] = {
+            "up": [round(float(x), 6) for x in fit.up],
+            "table_height_m": fit.height_m,
+            "start_height_mad_m": fit.start_height_mad_m,
+            "dip_share": fit.dip_share,
+            "captures": fit.num_captures,
+            "applied": reason is None,
+            **({"reason": reason} if reason else {}),
+        }
+        numbers = (
+            f"up {np.round(fit.up, 3).tolist()} in the camera's frame, start heights spread "
+            f"{fit.start_height_mad_m * 100:.1f} cm (MAD), {fit.dip_share * 100:.0f} % of "
+            f"{fit.num_captures} captures dip over {DIP_M * 100:.0f} cm"
+        )
+        if reason is None:
+            transform = table_frame(fit)
+            log.info("%s: written in its table's frame (%s)", session, numbers)
+        else:
+            (log.info if options.camera_frame else log.warning)(
+                "%s: kept the camera's frame, z not up: %s (%s)", session, reason, numbers
+            )
+    for source, raws in admitted:
+        for raw in raws:
+            _write(_moved(raw, transform), source, dst, options, sequences)
+
+
+def _moved(raw: RawSequence, transform: np.ndarray | None) -> RawSequence:
+    """``raw`` with its keypoints and object poses moved by ``transform`` (4, 4), if any."""
+    if transform is None:
+        return raw
+    return replace(
+        raw,
+        keypoints=transform_points(transform, np.asarray(raw.keypoints, dtype=np.float64)),
+        obj_pose=transform @ np.asarray(raw.obj_pose, dtype=np.float64),
+    )

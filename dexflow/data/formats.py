@@ -72,6 +72,9 @@ class ConvertOptions:
         jump_threshold_m: Wrist step between tracked frames that marks tracking loss
             (:func:`dexflow.human.cleaning.detect_bad_frames`).
         strict: A missing object model fails its sequence instead of skipping it.
+        camera_frame: HO-3D: keep the camera's frame instead of writing each folder's captures
+            in the frame of their table (z up), fitted from where the objects rest
+            (:mod:`dexflow.data.table`).
     """
 
     models: str | None = None
@@ -81,6 +84,7 @@ class ConvertOptions:
     side: str = "right"
     jump_threshold_m: float = 0.08
     strict: bool = False
+    camera_frame: bool = False
 
 
 @dataclass
@@ -111,11 +115,15 @@ class SourceSequence:
         name: Its name in the report if it cannot be read.
         path: The file or folder it is read from (named in errors).
         read: Reads it; raises :class:`DatasetLayoutError` naming the file that is wrong.
+        session: The capture session it belongs to (one camera, one table) where the data is
+            in a camera's frame: the folder whose sequences are written in their table's frame
+            together (HO-3D); None where the data has a world frame of its own.
     """
 
     name: str
     path: Path
     read: Callable[[], list[RawSequence]]
+    session: Path | None = None
 
 
 def need(path: Path, what: str) -> Path:

@@ -14,7 +14,9 @@ Layouts (only the files dexflow reads are listed):
   ``handJoints3D (21, 3)`` (HO-3D order), ``objRot (3,)`` axis-angle, ``objTrans (3,)``,
   ``objName`` (e.g. ``025_mug``); optional ``side``; optional MANO ``handPose (48,)``,
   ``handTrans (3,)``, ``handBeta (10,)`` used with ``--mano`` where the joints are missing.
-  Models ``<models>/<objName>/textured_simple.obj``.
+  Models ``<models>/<objName>/textured_simple.obj``. Poses and joints are in the camera's
+  frame; the sequences of one folder (a subject's, as DexYCB exports them: one camera) are one
+  session, written in their table's frame (:mod:`dexflow.data.table`).
 - **GRAB**: ``*.npz`` (pickled dicts, as GRAB ships them): ``framerate``, ``object`` with
   ``params: {transl (T, 3), global_orient (T, 3)}`` and ``object_mesh`` (path relative to SRC),
   ``rhand`` / ``lhand`` with ``joints (T, 21, 3)`` (MANO order) or, with ``--mano``,
@@ -201,6 +203,7 @@ def _ho3d(src: Path, options: ConvertOptions) -> Iterator[SourceSequence]:
             f"{seq_dir.parent.name}_{seq_dir.name}",
             seq_dir / "meta",
             lambda seq_dir=seq_dir: [_read_ho3d(seq_dir, models, options)],
+            session=seq_dir.parent,
         )
 
 

@@ -177,6 +177,17 @@ def _cmd_convert(args: argparse.Namespace) -> int:
             print(f"skip {name}: {entry['reason']}")
         else:
             print(f"FAIL {name}: {entry['error']}")
+    for folder, table in report["table_frames"].items():
+        fit = (
+            f"up {[round(x, 3) for x in table['up']]} in the camera's frame, "
+            f"{table['captures']} captures, start heights spread "
+            f"{table['start_height_mad_m'] * 100:.1f} cm (MAD), "
+            f"{table['dip_share'] * 100:.0f} % dip below the table"
+        )
+        if table["applied"]:
+            print(f"table {folder}: written in the table's frame, z up ({fit})")
+        else:
+            print(f"table {folder}: kept the camera's frame: {table['reason']} ({fit})")
     print(
         f"{report['num_ok']}/{report['num_sequences']} sequences written to {args.dst}"
         f" ({report['num_skipped']} skipped, {report['num_failed']} failed)"
