@@ -467,6 +467,14 @@ class ContactParams:
 # Stage refine's dvc.yaml dep ``${refine.grip_input}``: replay@retarget's folder when the grip
 # reads it, else a folder refine depends on anyway (so that refine waits on no replay).
 GRIP_INPUT = "data/replay/retarget"
+# The trajectories the later stages compare (``methods`` in params.yaml: label -> folder, the
+# ``foreach`` of stages simulate and replay); ``track=on`` adds ``track``: TRACK_OUTPUT.
+METHODS = {
+    "baseline": "data/retarget/position",
+    "retarget": "data/retarget/dexflow",
+    "refine": "data/refine",
+}
+TRACK_OUTPUT = "data/track"
 NO_GRIP_INPUT = "data/contact"
 
 
@@ -691,6 +699,74 @@ def _validate_replay(r: ReplayParams) -> None:
              r.friction)  # fmt: skip
 
 
+@dataclass
+@conf_defaults("track/default.yaml")
+class TrackParams:
+    """Stage ``track`` (``track`` in params.yaml; off unless ``enabled``): the sampling MPC that
+    makes the replay carry the object (see :mod:`dexflow.sim.track`).
+
+    Attributes:
+        after: The trajectories the stage starts from: ``[]`` (off: dvc.yaml has no stage
+            track) or ``["refine"]`` (``track=on``: stage ``track@refine``).
+        trajectories: The folder stage metrics reads for it: ``data/track`` when on, else
+            ``data/refine`` (a dep of stage metrics anyway; dvc.yaml's deps cannot be optional).
+        horizon_frames: Frames each candidate is rolled out ahead.
+        samples: Random perturbations of the plan per round and frame.
+        iterations: Rounds per frame, each around the best so far with its spread halved.
+        noise_base_m: Standard deviation of the base's translation offsets (m).
+        noise_base_rad: ... of its rotation offsets (rad, each Euler angle).
+        noise_finger_rad: ... of every finger joint's offsets (rad).
+        prior_weight: Cost of leaving the refined trajectory per metre of base translation (base
+            rotation counted 0.1 m/rad, the fingers' mean 0.05 m/rad).
+        rotation_weight_m_per_rad: Object rotation error counted as this many metres per rad.
+        contact_weight: Cost (m) of a frame where none of stage contact's fingers touch.
+        squeeze_m: Contact guidance: a candidate with the fingers in contact targeted this far
+            into the object (0: none).
+        object_guidance: Candidates with the base shifted by the object's position error.
+    """
+
+    after: list[str]
+    trajectories: str
+    horizon_frames: int
+    samples: int
+    iterations: int
+    noise_base_m: float
+    noise_base_rad: float
+    noise_finger_rad: float
+    prior_weight: float
+    rotation_weight_m_per_rad: float
+    contact_weight: float
+    squeeze_m: float
+    object_guidance: bool
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.after)
+
+
+def _validate_track(t: TrackParams, methods: dict) -> None:
+    _check_numbers(t, "track")
+    for key in ("horizon_frames", "iterations"):
+        _require(getattr(t, key) >= 1, f"track.{key}", ">= 1", getattr(t, key))
+    for key in ("samples", "noise_base_m", "noise_base_rad", "noise_finger_rad", "prior_weight",
+                "rotation_weight_m_per_rad", "contact_weight"):  # fmt: skip
+        _require(getattr(t, key) >= 0, f"track.{key}", ">= 0", getattr(t, key))
+    _require(0 <= t.squeeze_m <= 0.02, "track.squeeze_m", "within [0, 0.02] metres", t.squeeze_m)
+    _require(list(t.after) in ([], ["refine"]), "track.after", "[] (off) or [refine]", t.after)
+    on = {"trajectories": TRACK_OUTPUT, "methods": {**METHODS, "track": TRACK_OUTPUT}}
+    off = {"trajectories": METHODS["refine"], "methods": dict(METHODS)}
+    expected = on if t.enabled else off
+    found = {"trajectories": t.trajectories, "methods": dict(methods)}
+    for key, value in expected.items():
+        _require(
+            found[key] == value,
+            "track.trajectories" if key == "trajectories" else "methods",
+            f"{value} with track.after {list(t.after)} (`dexflow params track=on` or "
+            "track=default sets all three)",
+            found[key],
+        )
+
+
 def _validate_simulate(s: SimulateParams) -> None:
     unknown = [e for e in s.engines if e not in ENGINES]
     _require(bool(s.engines) and not unknown, "simulate.engines", f"engines among {list(ENGINES)}",
@@ -791,6 +867,8 @@ class PipelineParams:
     replay: ReplayParams = field(default_factory=ReplayParams)
     metrics: MetricsParams = field(default_factory=MetricsParams)
     run: RunParams = field(default_factory=RunParams)
+    track: TrackParams = field(default_factory=TrackParams)
+    methods: dict[str, str] = field(default_factory=lambda: dict(METHODS))
 
 
 def validate(params: PipelineParams) -> PipelineParams:
@@ -869,6 +947,7 @@ def validate(params: PipelineParams) -> PipelineParams:
     _check_numbers(params.simulate, "simulate")
     _validate_simulate(params.simulate)
     _validate_replay(params.replay)
+    _validate_track(params.track, params.methods)
     m = params.metrics
     _check_numbers(m, "metrics")
     for key in ("pd_violation_m", "spd_violation_m", "limit_tolerance_rad"):

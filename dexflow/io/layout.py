@@ -13,6 +13,7 @@ A project::
     data/retarget/<method>/      sequences/<name>.npz (trajectories; methods dexflow, position)
     data/contact/                sequences/<name>.npz (contact states and map)
     data/refine/                 sequences/<name>.npz (refined trajectories)
+    data/track/                  sequences/<name>.npz (tracked trajectories; stage track, when on)
     data/simulate/<label>/       sequences/<name>.npz (grasp tests; labels baseline, retarget,
                                  refine)
     data/replay/<label>/         sequences/<name>.npz (trajectories replayed with the object
@@ -43,9 +44,10 @@ __all__ = [
     "visible_npz",
 ]
 
-# The three trajectories the pipeline compares, by label: the baseline, the method before and
-# after refinement (the labels of simulate, metrics and reports).
-TRAJECTORIES = ("baseline", "retarget", "refine")
+# The trajectories the pipeline compares, by label: the baseline, the method before and after
+# refinement, and after tracking (stage track, when on: params.yaml's ``methods`` lists those a
+# project has; the labels of simulate, replay, metrics and reports).
+TRAJECTORIES = ("baseline", "retarget", "refine", "track")
 _RETARGET_METHOD = {"baseline": "position", "retarget": "dexflow"}
 
 
@@ -241,9 +243,15 @@ class Layout:
         """The trajectories labelled ``label`` (one of :data:`TRAJECTORIES`)."""
         if label == "refine":
             return self.refine
+        if label == "track":
+            return self.track
         if label not in _RETARGET_METHOD:
             raise ValueError(f"trajectory {label!r}: expected one of {list(TRAJECTORIES)}")
         return self.retarget(_RETARGET_METHOD[label])
+
+    @property
+    def track(self) -> StageDir:
+        return StageDir(self.root / "data" / "track")
 
     def simulate(self, label: str) -> StageDir:
         """Stage simulate's output for the trajectories labelled ``label``."""

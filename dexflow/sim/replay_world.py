@@ -72,9 +72,11 @@ def replay_errors(
     return np.linalg.norm(position - poses[:, :3, 3], axis=1), angle
 
 
-def _simulate_params(params: ReplayParams) -> SimulateParams:
+def _simulate_params(params: ReplayParams, squeeze_reach_m: float | None) -> SimulateParams:
     """The settings of the shared MuJoCo scene (and of its squeeze step) for ``params``."""
+    reach = {} if squeeze_reach_m is None else {"contact_margin_m": squeeze_reach_m}
     return SimulateParams(
+        **reach,
         mujoco=MujocoParams(
             kp=params.kp,
             joint_damping=params.joint_damping,
@@ -91,6 +93,8 @@ class ReplayWorld(MujocoGraspWorld):
     Args:
         hand: The kinematic model.
         params: The replay's parameters.
+        squeeze_reach_m: :meth:`squeezed` pushes the links this close to the object (None:
+            stage simulate's ``contact_margin_m``, the links in contact).
 
     Raises:
         HandConfigError: The model's joints or frames in MuJoCo disagree with ``hand``.
@@ -98,9 +102,12 @@ class ReplayWorld(MujocoGraspWorld):
 
     engine = "mujoco"
 
-    def __init__(self, hand: RobotHand, params: ReplayParams) -> None:
+    def __init__(
+        self, hand: RobotHand, params: ReplayParams, squeeze_reach_m: float | None = None
+    ) -> None:
         self.replay_params = params
-        super().__init__(hand, _simulate_params(params))
+        self.squeeze_reach_m = squeeze_reach_m
+        super().__init__(hand, _simulate_params(params, squeeze_reach_m))
 
     # ---------------------------------------------------------------------------- building
 
@@ -168,6 +175,7 @@ class ReplayWorld(MujocoGraspWorld):
         self._base_vel_act = np.arange(hand + 6, hand + 12)
         self._table = int(m.body_mocapid[m.body(_TABLE).id])
         self._table_pos = np.array([0.0, 0.0, -10.0])
+        self._fractions = np.zeros(0)
         # the friction the grasp test scales per trial: the table's too
         self._friction = m.geom_friction[:, 0].copy()
 
@@ -246,6 +254,46 @@ class ReplayWorld(MujocoGraspWorld):
             out[t] = self.targets(q[t], poses[t])[0]["squeeze"]
         return out
 
+    def begin(
+        self, q: np.ndarray, poses: np.ndarray, fps: float, window: tuple[int, int, int]
+    ) -> None:
+        """Reset for a replay of ``window = (start, first_contact, end)``: the time step, the
+        table under the object at the first contact, the hand at ``q[start]`` moving at the
+        trajectory's base velocity there, the object at rest at ``poses[first_contact]`` and
+        the base servos' gains for that state."""
+        rp, m, d = self.replay_params, self.model, self.data
+        start, first, end = window
+        m.opt.timestep = 1.0 / (fps * rp.substeps)
+        self.place_table(poses[first])
+        self._reset(q[start], poses[first])
+        if start < end:
+            d.qvel[self._base_dofs] = (q[start + 1, :6] - q[start, :6]) * fps
+        self._drive_gains()
+        mujoco.mj_forward(m, d)
+
+    def advance(self, a: np.ndarray, b: np.ndarray, fps: float) -> None:
+        """One recorded frame: ``substeps`` physics steps with the targets moving linearly from
+        ``a`` to ``b`` (dof,), the base's velocity ``(b - a) * fps`` fed forward."""
+        rp, m, d = self.replay_params, self.model, self.data
+        fractions = self._fractions
+        if len(fractions) != rp.substeps:
+            fractions = self._fractions = np.arange(1, rp.substeps + 1) / rp.substeps
+        path = a + fractions[:, None] * (b - a)
+        d.ctrl[self._base_vel_act] = (b[:6] - a[:6]) * fps
+        for k in range(rp.substeps):
+            d.ctrl[self._hand_act] = path[k, 6:]
+            d.ctrl[self._base_pos_act] = path[k, :6]
+            mujoco.mj_step(m, d)
+
+    def hand_state(self) -> np.ndarray:
+        """(dof,) the hand's configuration now: base joints, then finger joints."""
+        d = self.data
+        return np.concatenate([d.qpos[self._base_qpos], d.qpos[self._qpos]])
+
+    def object_pose7(self) -> np.ndarray:
+        """(7,) the object's position and orientation (w, x, y, z) now."""
+        return self.data.qpos[self._object_qpos].copy()
+
     def replay(
         self,
         q: np.ndarray,
@@ -269,43 +317,23 @@ class ReplayWorld(MujocoGraspWorld):
             The rows of :class:`~dexflow.io.artifacts.ReplayResult` (errors against ``poses``).
         """
         self._require_object("replay")
-        rp, m, d = self.replay_params, self.model, self.data
         start, first, end = window
         q = np.array(q, dtype=float)
         q[:, 3:6] = np.unwrap(q[:, 3:6], axis=0)  # hinge targets without 2 pi jumps
         targets = q if targets is None else np.asarray(targets, dtype=float)
         poses = np.asarray(poses, dtype=float)
-        m.opt.timestep = 1.0 / (fps * rp.substeps)
-        self.place_table(poses[first])
-        self._reset(q[start], poses[first])
-        velocity = np.diff(q[:, :6], axis=0) * fps  # (T-1, 6) base velocity between frames
-        if start < end:
-            d.qvel[self._base_dofs] = velocity[start]
-        self._drive_gains()
-        mujoco.mj_forward(m, d)
+        self.begin(q, poses, fps, window)
         frames = np.arange(start, end + 1)
-        position = np.empty((len(frames), 3))
-        quat = np.empty((len(frames), 4))
-        base = np.empty((len(frames), 6))
-        joints = np.empty((len(frames), len(self._qpos)))
-
-        def record(i: int) -> None:
-            position[i] = d.qpos[self._object_qpos][:3]
-            quat[i] = d.qpos[self._object_qpos][3:]
-            base[i] = d.qpos[self._base_qpos]
-            joints[i] = d.qpos[self._qpos]
-
-        record(0)
-        fractions = np.arange(1, rp.substeps + 1) / rp.substeps
-        for i, t in enumerate(frames[:-1], start=1):
-            hand = targets[t, 6:] + fractions[:, None] * (targets[t + 1, 6:] - targets[t, 6:])
-            path = q[t, :6] + fractions[:, None] * (q[t + 1, :6] - q[t, :6])
-            d.ctrl[self._base_vel_act] = velocity[t]
-            for k in range(rp.substeps):
-                d.ctrl[self._hand_act] = hand[k]
-                d.ctrl[self._base_pos_act] = path[k]
-                mujoco.mj_step(m, d)
-            record(i)
+        state = [self.hand_state()]
+        objects = [self.object_pose7()]
+        for t in frames[:-1]:
+            a = np.concatenate([q[t, :6], targets[t, 6:]])
+            b = np.concatenate([q[t + 1, :6], targets[t + 1, 6:]])
+            self.advance(a, b, fps)
+            state.append(self.hand_state())
+            objects.append(self.object_pose7())
+        hand, pose7 = np.array(state), np.array(objects)
+        position, quat, base, joints = pose7[:, :3], pose7[:, 3:], hand[:, :6], hand[:, 6:]
         position_error, rotation_error = replay_errors(position, quat, poses[frames])
         return {
             "frame": frames,
@@ -321,10 +349,16 @@ class ReplayWorld(MujocoGraspWorld):
 _WORLDS: dict[int, ReplayWorld] = {}
 
 
-def replay_world(hand: RobotHand, params: ReplayParams) -> ReplayWorld:
+def replay_world(
+    hand: RobotHand, params: ReplayParams, squeeze_reach_m: float | None = None
+) -> ReplayWorld:
     """One world per process and hand (loading and checking the model once)."""
     world = _WORLDS.get(id(hand))
-    if world is None or world.replay_params != params:
-        world = ReplayWorld(hand, params)
+    if (
+        world is None
+        or world.replay_params != params
+        or world.squeeze_reach_m != squeeze_reach_m
+    ):
+        world = ReplayWorld(hand, params, squeeze_reach_m)
         _WORLDS[id(hand)] = world
     return world

@@ -98,6 +98,7 @@ from dexflow.human.keypoints import wrist_frame
 from dexflow.io.artifacts import (
     ObjectAssets,
     ReplayResult,
+    read_trajectory,
     write_replay,
 )
 from dexflow.io.layout import Layout
@@ -302,7 +303,11 @@ def _empty_rows() -> dict[str, np.ndarray]:
 
 
 def replay_sequence(
-    world: ReplayWorld, seq: Sequence, q: np.ndarray, touching: np.ndarray
+    world: ReplayWorld,
+    seq: Sequence,
+    q: np.ndarray,
+    touching: np.ndarray,
+    targets: np.ndarray | None = None,
 ) -> tuple[dict[str, np.ndarray], dict]:
     """Replay one sequence over its window, if it can be scored (module docs).
 
@@ -312,6 +317,8 @@ def replay_sequence(
         seq: The recorded sequence (object poses, human keypoints, fps).
         q: (T, dof) the trajectory.
         touching: (T,) frames with a finger in contact (stage contact's final states).
+        targets: (T, dof) the position targets of base and fingers, where the trajectory has
+            them (stage track's: ``q`` is where they put the hand); replayed as they are.
 
     Returns:
         The rows of :class:`~dexflow.io.artifacts.ReplayResult` (none where not scored) and the
@@ -326,8 +333,11 @@ def replay_sequence(
     if not window.scored:
         return _empty_rows(), {**not_scored, **window.entry()}
     frames = (window.start, window.first_contact, window.end)
-    targets = world.squeezed(q, seq.obj_pose, touching)
-    rows = world.replay(q, seq.obj_pose, seq.fps, frames, targets)
+    if targets is not None:
+        rows = world.replay(targets, seq.obj_pose, seq.fps, frames)
+    else:
+        squeezed = world.squeezed(q, seq.obj_pose, touching)
+        rows = world.replay(q, seq.obj_pose, seq.fps, frames, squeezed)
     result = sequence_result(rows, window.first_contact, seq.obj_pose, seq.fps, p)
     return rows, {**result, **window.entry()}
 
@@ -368,7 +378,8 @@ def run_replay(params: PipelineParams, layout: Layout, label: str) -> dict:
     Args:
         params: Pipeline params (``hand``, ``replay``, ``run``).
         layout: The project's paths; the trajectories are ``layout.trajectory(label)``.
-        label: One of :data:`~dexflow.io.layout.TRAJECTORIES` (baseline, retarget, refine).
+        label: One of :data:`~dexflow.io.layout.TRAJECTORIES` (baseline, retarget, refine,
+            track); a trajectory with ``targets`` (stage track's) is replayed on those.
 
     Returns:
         The summary (also written to the stage's ``summary.json``), with the wall-clock speed
@@ -387,8 +398,9 @@ def run_replay(params: PipelineParams, layout: Layout, label: str) -> dict:
         world = replay_world(hand, rp)
         if touching.any():
             world.set_object(ObjectAssets(aligned.object_of(seq.obj_mesh)).paths.convex)
+        targets = read_trajectory(path, hand.joint_names, seq.num_frames).arrays.get("targets")
         begin = time.perf_counter()
-        rows, entry = replay_sequence(world, seq, q, touching)
+        rows, entry = replay_sequence(world, seq, q, touching, targets)
         seconds = time.perf_counter() - begin
         write_replay(out.sequence(path), ReplayResult(rows))
         return {**entry, "seconds": seconds}

@@ -1,0 +1,315 @@
+"""Stage track's search: the targets that make the replay carry the object (sampling MPC).
+
+A refined trajectory is kinematic: played back with the object free (stage replay), the fingers
+merely touch it, so they press next to nothing, and the object is shoved off or left behind.
+:func:`track_sequence` searches, frame by frame in the replay's own MuJoCo scene
+(:class:`~dexflow.sim.replay_world.ReplayWorld`, the same base servos, finger actuators, table
+and gravity), for the position targets under which the object follows its recorded path:
+
+- **Receding horizon.** At frame ``t`` of the replay window the simulation state is saved;
+  candidate targets for frames ``t+1 .. t+horizon_frames`` are each rolled out from it
+  (``substeps`` physics steps per frame, exactly as the replay steps); the cheapest candidate
+  becomes the plan, its first frame is applied, and the search moves to ``t+1`` with the rest
+  of the plan as its starting point. ``iterations`` rounds per frame, each sampling around the
+  best so far with its spread halved.
+- **Candidates.** The plan so far; the **prior** (the refined trajectory, hinges unwrapped); the
+  **contact-guided** prior (``squeeze_m > 0``: where stage contact has a finger on the object,
+  the fingers' targets pushed that far into the object at its recorded pose: a position servo
+  presses only as hard as its target lies inside); the plan with the base shifted by the
+  object's position error now (``object_guidance``: a held object follows the hand, so moving
+  the hand by the object's error moves the object back onto its path), by all of it and by
+  half; and ``samples`` random perturbations of the plan: per candidate two offsets, for the
+  first and the last frame of the horizon, linear between, drawn normal with spreads
+  ``noise_base_m`` (base translation), ``noise_base_rad`` (base rotation), ``noise_finger_rad``
+  (every finger joint).
+- **Cost** of a rollout, averaged over its frames: the object's position error plus
+  ``rotation_weight_m_per_rad`` times its rotation error against the recorded pose (the recorded
+  pose at the first contact before it: the object rests there); plus ``contact_weight`` times
+  the share of the fingers stage contact has on the object that do not touch it in the
+  simulation (contact guidance); plus ``prior_weight`` times the distance of the targets from
+  the prior (base translation in m, base rotation and the finger joints' mean in rad times
+  0.1 and 0.05 m/rad: a rotation moves a fingertip about that far).
+
+The tracked trajectory's ``q`` is the state the hand reaches in the simulation (where it really
+is: fingers stopped at the object's surface, the base where its force-limited servos got it);
+``targets`` are the position targets that reach it, the controls a robot would be given. Outside
+the replay window both are the prior. A replay of ``targets`` (stage replay does so whenever a
+trajectory has them) reproduces the search's final rollout exactly: the same scene, steps and
+state.
+
+**Feasible** means the final rollout succeeds by the replay's own criteria (SPIDER's thresholds
+and carried, :func:`dexflow.stages.replay.sequence_result`); an object no hand motion near the
+prior can carry (out of reach, too heavy for the servos) is reported not feasible, its best
+attempt kept for inspection, never a success.
+
+Deterministic: the random perturbations come from the generator the caller seeds (stage track:
+the pipeline seed and the sequence's name), MuJoCo steps single-threaded from a reset state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from dexflow.sim.replay_world import ReplayWorld, replay_errors
+
+__all__ = ["TrackSettings", "track_sequence"]
+
+_BASE_ROT_LEVER_M = 0.1  # m/rad: the prior cost of a base rotation (palm to fingertip)
+_FINGER_LEVER_M = 0.05  # m/rad: the prior cost of a finger joint's rotation (a phalanx)
+
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """The search's settings (``track`` in params.yaml; :mod:`dexflow.sim.track` explains
+    each)."""
+
+    horizon_frames: int = 6
+    samples: int = 16
+    iterations: int = 2
+    noise_base_m: float = 0.01
+    noise_base_rad: float = 0.05
+    noise_finger_rad: float = 0.1
+    prior_weight: float = 0.5
+    rotation_weight_m_per_rad: float = 0.2
+    contact_weight: float = 0.02
+    squeeze_m: float = 0.015
+    squeeze_reach_m: float = 0.03
+    object_guidance: bool = True
+    carry_gain: float = 1.0
+    grip_ramp_frames: int = 3
+
+
+def _finger_of_body(world: ReplayWorld) -> np.ndarray:
+    """(nbody,) the index of the finger (``hand.spec.fingers`` order) each body belongs to, -1
+    for bodies of no finger."""
+    from dexflow.sim.mujoco_world import hand_name
+
+    m = world.model
+    out = np.full(m.nbody, -1)
+    names = {m.body(i).name: i for i in range(m.nbody)}
+    for f, finger in enumerate(world.hand.spec.fingers.values()):
+        for link in finger.links:
+            body = names.get(hand_name(link))
+            if body is not None:
+                out[body] = f
+    return out
+
+
+class _Rollouts:
+    """Rollouts of candidate targets from one saved state, and their costs."""
+
+    def __init__(
+        self,
+        world: ReplayWorld,
+        prior: np.ndarray,
+        poses: np.ndarray,
+        fps: float,
+        first: int,
+        fingers: np.ndarray,
+        settings: TrackSettings,
+    ) -> None:
+        self.world, self.prior, self.fps, self.s = world, prior, fps, settings
+        self.goal = poses.copy()
+        self.goal[:first] = poses[first]  # before the first contact the object rests there
+        self.fingers = np.asarray(fingers, dtype=bool)  # (T, F) stage contact's fingers
+        self.finger_of_body = _finger_of_body(world)
+        self.object_body = world._object
+        n = len(world.hand.spec.fingers)
+        self._touch = np.zeros(n, dtype=bool)
+        self.lever = np.concatenate(
+            [np.ones(3), np.full(3, _BASE_ROT_LEVER_M), np.full(prior.shape[1] - 6, 1.0)]
+        )
+
+    def touching(self) -> np.ndarray:
+        """(F,) fingers touching the object in the simulation now."""
+        m, d = self.world.model, self.world.data
+        touch = self._touch
+        touch[:] = False
+        n = d.ncon
+        if n:
+            bodies = m.geom_bodyid[d.contact.geom[:n]]  # (C, 2)
+            other = np.where(bodies[:, 0] == self.object_body, bodies[:, 1], bodies[:, 0])
+            with_object = (bodies == self.object_body).any(axis=1)
+            finger = self.finger_of_body[other[with_object]]
+            touch[finger[finger >= 0]] = True
+        return touch.copy()
+
+    def run(self, start_target: np.ndarray, plan: np.ndarray, frames: np.ndarray) -> tuple:
+        """Roll ``plan (K, dof)`` (targets of ``frames``) out from the current state, starting
+        from ``start_target`` (the targets of the frame before); returns the cost, the hand's
+        states (K, dof) and the object's poses (K, 7)."""
+        world, fps = self.world, self.fps
+        states = np.empty_like(plan)
+        objects = np.empty((len(frames), 7))
+        missing = np.zeros(len(frames))
+        previous = start_target
+        for k, t in enumerate(frames):
+            target = self.corrected(plan[k], t)
+            world.advance(previous, target, fps)
+            previous = target
+            states[k] = world.hand_state()
+            objects[k] = world.object_pose7()
+            wanted = self.fingers[t]
+            if wanted.any():
+                missing[k] = (wanted & ~self.touching()).sum() / wanted.sum()
+        return self.cost(plan, frames, objects, missing), states, objects
+
+    def corrected(self, target: np.ndarray, t: int) -> np.ndarray:
+        """``target`` (frame ``t``'s) with the base moved by ``carry_gain`` times the object's
+        position error now (against frame ``t - 1``'s goal) while two fingers hold it."""
+        gain = self.s.carry_gain
+        if gain <= 0 or self.touching().sum() < 2:
+            return target
+        out = target.copy()
+        out[:3] += gain * (self.goal[t - 1, :3, 3] - self.world.object_pose7()[:3])
+        return out
+
+    def cost(
+        self, plan: np.ndarray, frames: np.ndarray, objects: np.ndarray, missing: np.ndarray
+    ) -> float:
+        s = self.s
+        position, rotation = replay_errors(objects[:, :3], objects[:, 3:], self.goal[frames])
+        tracking = position + s.rotation_weight_m_per_rad * rotation
+        deviation = np.abs(plan - self.prior[frames]) * self.lever
+        prior = (
+            np.linalg.norm(deviation[:, :3], axis=1)
+            + np.linalg.norm(deviation[:, 3:6], axis=1)
+            + _FINGER_LEVER_M * deviation[:, 6:].mean(axis=1)
+        )
+        return float(
+            tracking.mean() + s.contact_weight * missing.mean() + s.prior_weight * prior.mean()
+        )
+
+
+def _noise(
+    rng: np.random.Generator, count: int, length: int, dof: int, s: TrackSettings, scale: float
+) -> np.ndarray:
+    """(count, length, dof) perturbations: normal offsets at the horizon's first and last frame,
+    linear between."""
+    spread = np.concatenate(
+        [np.full(3, s.noise_base_m), np.full(3, s.noise_base_rad),
+         np.full(dof - 6, s.noise_finger_rad)]
+    ) * scale  # fmt: skip
+    ends = rng.standard_normal((count, 2, dof)) * spread
+    ramp = np.linspace(0.0, 1.0, length)[None, :, None] if length > 1 else np.ones((1, 1, 1))
+    return ends[:, :1] + ramp * (ends[:, 1:] - ends[:, :1])
+
+
+def grip_schedule(poses: np.ndarray, window: tuple[int, int, int], ramp: int) -> np.ndarray:
+    """(T,) how much of the squeeze the contact guidance applies at each frame: 0 until ``ramp``
+    frames before the **lift** (the first frame after the first contact where the recorded
+    object is 1 cm from where it was then: fingers closing on an object at rest shove it), 1
+    from the lift to the window's end, linear between."""
+    start, first, end = window
+    position = poses[:, :3, 3]
+    moved = np.linalg.norm(position[first : end + 1] - position[first], axis=1) > 0.01
+    lift = first + (int(np.argmax(moved)) if moved.any() else end - first)
+    share = np.clip((np.arange(len(poses)) - (lift - ramp)) / max(ramp, 1), 0.0, 1.0)
+    share[end + 1 :] = 0.0
+    return share
+
+
+def _per_finger(push: np.ndarray, hand) -> np.ndarray:
+    """(F, T, dof) ``push (T, dof)`` split by finger: each finger's joints' columns only."""
+    names = list(hand.joint_names)
+    out = np.zeros((len(hand.spec.fingers), *push.shape))
+    for f, finger in enumerate(hand.spec.fingers.values()):
+        columns = [names.index(j) for j in finger.joints if j in names]
+        out[f][:, columns] = push[:, columns]
+    return out
+
+
+def track_sequence(
+    world: ReplayWorld,
+    q: np.ndarray,
+    poses: np.ndarray,
+    fps: float,
+    window: tuple[int, int, int],
+    fingers: np.ndarray,
+    settings: TrackSettings,
+    rng: np.random.Generator,
+    clamp=None,
+) -> dict[str, np.ndarray]:
+    """Search the targets under which the replay carries the object (module docs).
+
+    Args:
+        world: The replay's scene with the sequence's object set; its ``squeeze_m`` is the
+            contact guidance's push (:meth:`ReplayWorld.squeezed`).
+        q: (T, dof) the prior (the refined trajectory).
+        poses: (T, 4, 4) the recorded object poses.
+        fps: Frames per second.
+        window: ``(start, first_contact, end)``: the replay's window
+            (:func:`dexflow.stages.replay.replay_window`).
+        fingers: (T, F) stage contact's final states (which fingers touch the object).
+        settings: The search's settings.
+        rng: The random generator of the perturbations.
+        clamp: Maps (N, dof) targets into the hand's joint limits and couplings (None: as
+            they are).
+
+    Returns:
+        ``q`` (T, dof) the simulated hand's states in the window (the prior elsewhere),
+        ``targets`` (T, dof), ``object_pose7`` (T, 7) the simulated object in the window (NaN
+        elsewhere) and ``cost`` (T,) of the chosen plan at each frame (NaN outside the window).
+    """
+    s = settings
+    start, first, end = window
+    prior = np.array(q, dtype=float)
+    prior[:, 3:6] = np.unwrap(prior[:, 3:6], axis=0)
+    poses = np.asarray(poses, dtype=float)
+    touching = np.asarray(fingers, dtype=bool).any(axis=1)
+    full = world.squeezed(prior, poses, touching) - prior if s.squeeze_m > 0 else 0 * prior
+    guided = prior + grip_schedule(poses, window, s.grip_ramp_frames)[:, None] * full
+    squeeze = _per_finger(full, world.hand)  # (F, T, dof)
+    rollouts = _Rollouts(world, guided, poses, fps, first, fingers, s)
+    clamp = clamp or (lambda x: x)
+    plan = guided.copy()
+    applied = guided.copy()  # the plan with the carry feedback: the targets output
+    states = prior.copy()
+    objects = np.full((len(prior), 7), np.nan)
+    costs = np.full(len(prior), np.nan)
+    world.begin(plan, poses, fps, window)
+    objects[start] = world.object_pose7()
+    if start < end:  # the replay's start velocity is the targets' there: the prior's, kept
+        world.advance(plan[start], plan[start + 1], fps)
+        states[start + 1] = world.hand_state()
+        objects[start + 1] = world.object_pose7()
+    dof = prior.shape[1]
+    for t in range(start + 1, end):
+        frames = np.arange(t + 1, min(t + s.horizon_frames, end) + 1)
+        saved = world._state()
+        fixed = [plan[frames], prior[frames]]
+        if s.squeeze_m > 0:
+            fixed += [guided[frames] + k * full[frames] for k in (-0.5, 0.5)]
+        if s.object_guidance:
+            error = poses[max(t, first), :3, 3] - objects[t, :3]
+            for share in (0.5, 1.0):
+                moved = plan[frames].copy()
+                moved[:, :3] += share * error
+                fixed.append(moved)
+        best_cost, best = np.inf, plan[frames]
+        candidates = np.array(fixed)
+        for round_ in range(max(1, s.iterations)):
+            if round_ > 0 or s.samples:
+                noise = _noise(rng, s.samples, len(frames), dof, s, 0.5**round_)
+                if s.squeeze_m > 0:  # contact guidance: each finger pressed more or less
+                    shares = rng.normal(0.0, 0.5**round_, (s.samples, len(squeeze)))
+                    noise += np.einsum("nf,fkd->nkd", shares, squeeze[:, frames])
+                sampled = best[None] + noise
+                candidates = sampled if round_ else np.concatenate([candidates, sampled])
+            candidates = clamp(candidates.reshape(-1, dof)).reshape(candidates.shape)
+            for candidate in candidates:
+                world._restore(saved)
+                cost, _, _ = rollouts.run(applied[t], candidate, frames)
+                if cost < best_cost:
+                    best_cost, best = cost, candidate
+        plan[frames] = best
+        costs[t + 1] = best_cost
+        world._restore(saved)
+        applied[t + 1] = rollouts.corrected(plan[t + 1], t + 1)
+        world.advance(applied[t], applied[t + 1], fps)
+        states[t + 1] = world.hand_state()
+        objects[t + 1] = world.object_pose7()
+    states[start] = plan[start]
+    return {"q": states, "targets": applied, "object_pose7": objects, "cost": costs}

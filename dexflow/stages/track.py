@@ -1,0 +1,180 @@
+"""Stage track: refined trajectories the replay carries the object with (physics in the loop).
+
+For every sequence the replay scores (:func:`dexflow.stages.replay.replay_window`: in contact,
+supported, no free fall), :func:`dexflow.sim.track.track_sequence` searches, in the replay's own
+MuJoCo scene, for the position targets under which the object follows its recorded path
+(sampling MPC with the refined trajectory as its prior, the recorded object pose as its goal
+and stage contact's fingers as guidance; :mod:`dexflow.sim.track` explains it). The output is a
+trajectory like any other (``data/track/sequences/<name>.npz``, the fourth method ``track``
+beside baseline, retarget and refine): ``q`` is where the simulated hand is, ``targets`` the
+position targets that put it there (stage replay replays those), ``object_pose7`` the simulated
+object; outside the replay window both are the refined trajectory, and sequences the replay does
+not score are passed through unchanged (``tracked`` false, with the replay's reason).
+
+**Feasible**: the tracked trajectory's replay succeeds by the replay's criteria (SPIDER's
+thresholds and carried). Per sequence: ``tracked``, ``feasible``, ``not_tracked_reason``, the
+replay's summary entry of the tracked trajectory (``success``, ``position_error_mean_m``, ...)
+and ``seconds`` (CPU seconds of the search). Summary: ``num_tracked``, ``feasible_rate`` (% of
+the tracked), ``seconds_per_frame`` (search CPU seconds per replayed frame; the stage's cost is
+linear in frames) and the means of the object errors.
+
+Off by default (``track.enabled``; ``dexflow params track=on``): on the 24-sequence demo it adds
+minutes to a first ``dvc repro``.
+
+Deterministic: each sequence's perturbations come from ``np.random.default_rng([seed, crc32 of
+its name])``, so results do not depend on the worker count or order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dexflow.io.artifacts import ObjectAssets, Trajectory, read_trajectory, write_trajectory
+from dexflow.io.layout import Layout
+from dexflow.params import PipelineParams
+from dexflow.pipeline.labelled import labelled_hand, load_labelled
+from dexflow.pipeline.resume import StageOutput
+from dexflow.pipeline.runner import StageSpec
+from dexflow.sim.replay_world import replay_world
+from dexflow.sim.track import TrackSettings, track_sequence
+from dexflow.stages.replay import replay_window, sequence_result
+
+__all__ = ["STAGE", "run_track", "settings_of"]
+
+logger = logging.getLogger(__name__)
+
+
+def settings_of(params: PipelineParams) -> TrackSettings:
+    """The search's settings from ``params.track``."""
+    t = params.track
+    return TrackSettings(
+        horizon_frames=t.horizon_frames,
+        samples=t.samples,
+        iterations=t.iterations,
+        noise_base_m=t.noise_base_m,
+        noise_base_rad=t.noise_base_rad,
+        noise_finger_rad=t.noise_finger_rad,
+        prior_weight=t.prior_weight,
+        rotation_weight_m_per_rad=t.rotation_weight_m_per_rad,
+        contact_weight=t.contact_weight,
+        squeeze_m=t.squeeze_m,
+        squeeze_reach_m=t.squeeze_reach_m,
+        object_guidance=t.object_guidance,
+    )
+
+
+def _clamp(hand):
+    def clamp(x: np.ndarray) -> np.ndarray:
+        q = hand.clamp(hand.apply_couplings(hand.as_q(x)))
+        return q.cpu().numpy().astype(np.float64)
+
+    return clamp
+
+
+def run_track(params: PipelineParams, layout: Layout, label: str = "refine") -> dict:
+    """Stage runner: track every trajectory labelled ``label`` (module docs).
+
+    Returns:
+        The summary (also written to the stage's ``summary.json``), with the wall-clock speed
+        under ``timing`` (returned, not written there).
+    """
+    out, aligned = layout.track, layout.scale_align
+    settings = settings_of(params)
+    world_params = dataclasses.replace(params.replay, squeeze_m=settings.squeeze_m)
+    stage = StageOutput(
+        out,
+        f"track {label}",
+        {"hand": params.hand, "replay": params.replay, "track": params.track,
+         "seed": params.seed},
+        inputs=(layout.trajectory(label), layout.contact, layout.scale_align, layout.hand_files),
+    )  # fmt: skip
+    files = stage.start()
+    if files:  # a hand MuJoCo cannot load fails the stage once (exit 2), not every sequence
+        replay_world(labelled_hand(params, layout), world_params, settings.squeeze_reach_m)
+
+    def one(path: Path) -> dict:
+        hand, seq, q, found = load_labelled(params, layout, path)
+        prior = read_trajectory(path, hand.joint_names, seq.num_frames)
+        touching = found.final.any(axis=1)
+        world = replay_world(hand, world_params, settings.squeeze_reach_m)
+        arrays = dict(prior.arrays)
+        entry: dict = {"tracked": False, "feasible": False, "seconds": 0.0}
+        window = None
+        if touching.any():
+            world.set_object(ObjectAssets(aligned.object_of(seq.obj_mesh)).paths.convex)
+            window = replay_window(touching, seq, world.lowest_heights(seq.obj_pose), params.replay)
+        if window is None or not window.scored:
+            reason = "no contact" if window is None else window.not_scored_reason
+            arrays.update(targets=q, object_pose7=np.full((len(q), 7), np.nan))
+            write_trajectory(out.sequence(path), Trajectory(q, hand.joint_names, arrays))
+            return {**entry, "not_tracked_reason": reason, "frames": 0}
+        frames = (window.start, window.first_contact, window.end)
+        rng = np.random.default_rng([int(params.seed), zlib.crc32(path.stem.encode())])
+        begin = time.process_time()
+        found_fingers = found.final
+        result = track_sequence(
+            world, q, seq.obj_pose, seq.fps, frames, found_fingers, settings, rng, _clamp(hand)
+        )
+        seconds = time.process_time() - begin
+        rows = world.replay(result["targets"], seq.obj_pose, seq.fps, frames)
+        scored = sequence_result(rows, window.first_contact, seq.obj_pose, seq.fps, params.replay)
+        arrays.update(
+            targets=result["targets"], object_pose7=result["object_pose7"], cost=result["cost"]
+        )
+        write_trajectory(out.sequence(path), Trajectory(result["q"], hand.joint_names, arrays))
+        return {
+            **scored,
+            "tracked": True,
+            "feasible": bool(scored["success"]),
+            "not_tracked_reason": None,
+            "seconds": seconds,
+        }
+
+    torch.set_num_threads(1)
+    tally = stage.run(one, files, params.run)
+    tracked = [e for e in tally.ok if e["tracked"]]
+    seconds = sum(e.pop("seconds") for e in tally.ok)
+    frames = sum(e["frames"] for e in tracked)
+
+    def mean(key: str) -> float:
+        return float(np.mean([e[key] for e in tracked])) if tracked else float("nan")
+
+    summary = {
+        **tally.counts("track"),
+        "num_tracked": len(tracked),
+        "feasible_rate": 100 * mean("feasible"),
+        "position_error_mean_m": mean("position_error_mean_m"),
+        "rotation_error_mean_rad": mean("rotation_error_mean_rad"),
+        "position_error_final_m": mean("position_error_final_m"),
+        "lost_rate": 100 * mean("lost"),
+    }
+    summary["sequences"] = dict(sorted(tally.sequences.items()))
+    stage.finish(summary)
+    return {
+        **summary,
+        "timing": {
+            "cpu_seconds": seconds,
+            "cpu_seconds_per_frame": seconds / frames if frames else 0.0,
+            "cpu_seconds_per_70_frames": 70 * seconds / frames if frames else 0.0,
+        },
+    }
+
+
+STAGE = StageSpec(
+    name="track",
+    run=run_track,
+    metric_keys=None,
+    describe=lambda s: (
+        f"{s['num_ok']}/{s['num_sequences']} sequences, {s['num_tracked']} tracked; feasible "
+        f"{s['feasible_rate']:.1f} %, lost {s['lost_rate']:.0f} %, mean object error "
+        f"{100 * s['position_error_mean_m']:.1f} cm / {s['rotation_error_mean_rad']:.2f} rad; "
+        f"{s['timing']['cpu_seconds_per_70_frames']:.1f} CPU-s per 70 frames"
+    ),
+)  # fmt: skip
