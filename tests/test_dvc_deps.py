@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import re
 from functools import cache
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -45,11 +46,32 @@ def _substitute(value: Any, key: str | None, item: Any) -> Any:
 
 
 @cache
+def _params_with_track() -> dict:
+    import tempfile
+
+    from dexflow.config import compose_params
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = compose_params(["track=on"], Path(tmp) / "params.yaml")
+        return yaml.safe_load(path.read_text())
+
+
+def _resolved(foreach):
+    """A ``foreach``, a ``${a.b}`` template looked up in :func:`_params_with_track`."""
+    if isinstance(foreach, str) and foreach.startswith("${"):
+        value = _params_with_track()
+        for key in foreach.removeprefix("${").removesuffix("}").split("."):
+            value = value[key]
+        return value
+    return foreach
+
+
+@cache
 def stages() -> dict[str, dict]:
     """Every stage of dvc.yaml, ``foreach`` ones expanded (``name@key``, as DVC names them).
 
-    A ``foreach`` over a ``${...}`` template (resolved by DVC from params.yaml) gives one stage
-    ``name@*`` whose ``${item}`` stays unresolved.
+    A ``foreach`` over a ``${...}`` template is resolved as DVC resolves it, from params.yaml
+    as ``dexflow params track=on`` composes it (every stage present: the demo's, track's).
     """
     dvc = yaml.safe_load((ROOT / "dvc.yaml").read_text(encoding="utf-8"))
     expanded = {}
@@ -57,7 +79,7 @@ def stages() -> dict[str, dict]:
         if "foreach" not in stage:
             expanded[name] = stage
             continue
-        foreach, do = stage["foreach"], stage["do"]
+        foreach, do = _resolved(stage["foreach"]), stage["do"]
         if isinstance(foreach, dict):
             for key, item in foreach.items():
                 expanded[f"{name}@{key}"] = _substitute(do, str(key), item)
@@ -103,7 +125,8 @@ def _outputs() -> frozenset[str]:
 def test_dvc_yaml_is_read():
     """The expansion finds the stages (so the tests below cannot pass on an empty list)."""
     names = set(stages())
-    assert {"scale_align", "contact", "refine", "metrics", "report", "demo@*"} <= names
+    assert {"scale_align", "contact", "refine", "metrics", "report", "demo@demo"} <= names
+    assert {"track@refine", "simulate@track", "replay@track"} <= names
     assert {"retarget@dexflow", "retarget@position"} <= names
     assert {"simulate@baseline", "simulate@retarget", "simulate@refine"} <= names
     assert "data/refine" in _paths(stages()["simulate@refine"]["deps"])  # ${item} substituted

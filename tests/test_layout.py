@@ -24,16 +24,33 @@ def _declared(entries: list | None, **subst: str) -> list[Path]:
     return paths
 
 
-def _stages() -> dict[str, tuple[list[Path], list[Path]]]:
-    """Every dvc.yaml stage, foreach expanded as DVC names it (``name@key``): (outs, metrics)."""
+def _params_with_track(tmp: Path) -> Path:
+    """params.yaml as ``dexflow params track=on`` composes it: every stage present."""
+    from dexflow.config import compose_params
+
+    return compose_params(["track=on"], tmp / "params.yaml")
+
+
+def _foreach(foreach, params: dict):
+    """A ``foreach`` as DVC expands it: ``${a.b}`` looked up in ``params``."""
+    if isinstance(foreach, str):
+        for key in foreach.removeprefix("${").removesuffix("}").split("."):
+            params = params[key]
+        return params
+    return foreach
+
+
+def _stages(params: dict) -> dict[str, tuple[list[Path], list[Path]]]:
+    """Every dvc.yaml stage, foreach expanded as DVC names it (``name@key``) with ``params``:
+    (outs, metrics)."""
     dvc = yaml.safe_load((REPO / "dvc.yaml").read_text(encoding="utf-8"))
     stages = {}
     for name, stage in dvc["stages"].items():
         if "foreach" not in stage:
             stages[name] = (_declared(stage.get("outs")), _declared(stage.get("metrics")))
             continue
-        foreach, do = stage["foreach"], stage["do"]
-        if isinstance(foreach, str):  # interpolated from params (stage demo): not expandable
+        foreach, do = _foreach(stage["foreach"], params), stage["do"]
+        if name == "demo":  # the input, written only where the data is the demo
             continue
         items = foreach.items() if isinstance(foreach, dict) else ((i, i) for i in foreach)
         for key, item in items:
@@ -46,15 +63,26 @@ def _stages() -> dict[str, tuple[list[Path], list[Path]]]:
 
 
 @pytest.fixture(scope="module")
-def stages():
-    return _stages()
+def params_file(tmp_path_factory):
+    return _params_with_track(tmp_path_factory.mktemp("params"))
+
+
+@pytest.fixture(scope="module")
+def params(params_file):
+    return yaml.safe_load(params_file.read_text())
+
+
+@pytest.fixture(scope="module")
+def stages(params):
+    return _stages(params)
 
 
 @pytest.fixture(scope="module", params=["simulate", "replay"])
-def simulate_foreach(request):
-    """The ``foreach`` of simulate and of replay: both run on the three trajectories."""
+def simulate_foreach(request, params):
+    """The ``foreach`` of simulate and of replay (params.yaml's ``methods``): both run on every
+    trajectory, track's with track=on."""
     dvc = yaml.safe_load((REPO / "dvc.yaml").read_text(encoding="utf-8"))
-    return dvc["stages"][request.param]["foreach"]
+    return _foreach(dvc["stages"][request.param]["foreach"], params)
 
 
 # ------------------------------------------------------------------------ dvc.yaml agreement
@@ -67,6 +95,7 @@ _STAGE_PATHS = {
     "retarget@position": (_LAYOUT.retarget("position").root, "retarget_position"),
     "contact": (_LAYOUT.contact.root, "contact"),
     "refine": (_LAYOUT.refine.root, "refine"),
+    "track@refine": (_LAYOUT.track.root, "track_refine"),
     **{f"simulate@{t}": (_LAYOUT.simulate(t).root, f"simulate_{t}") for t in TRAJECTORIES},
     **{f"replay@{t}": (_LAYOUT.replay(t).root, f"replay_{t}") for t in TRAJECTORIES},
     "metrics": (_LAYOUT.metrics.root, "metrics"),
@@ -267,7 +296,7 @@ def test_sequence_names_may_hold_dots(tmp_path):
     assert stage.sequence("take.001") != stage.sequence("take.002")
 
 
-def test_bench_runs_every_dvc_stage_in_dvc_order(stages, tmp_path):
+def test_bench_runs_every_dvc_stage_in_dvc_order(stages, params_file, tmp_path):
     """`dexflow bench pipeline|real` time the pipeline that `dvc repro` runs: the same stages
     (``foreach`` items expanded), in the order dexflow.tools.sweep runs them (dvc.yaml's, a stage
     after those whose outputs it reads); only the report is left out."""
@@ -277,11 +306,11 @@ def test_bench_runs_every_dvc_stage_in_dvc_order(stages, tmp_path):
     from dexflow.pipeline.registry import load_stages
     from dexflow.tools.bench.pipeline import pipeline_stages
 
-    params = load_params(Path(__file__).parents[1] / "params.yaml")
+    params = load_params(params_file)  # track=on: every stage
     names = [name for name, _ in pipeline_stages(params, Layout.of("data", root=tmp_path))]
     dvc = yaml.safe_load((Path(__file__).parents[1] / "dvc.yaml").read_text())
     assert next(iter(dvc["stages"])) == "demo"  # ``stages`` leaves the demo out: no sequences
     assert sorted(names) == sorted(["demo", *(name for name in stages if name != "report")])
     root = Path(__file__).parents[1]
-    order = [s.name for s in load_stages(root / "dvc.yaml", load_yaml(root / "params.yaml"))]
+    order = [s.name for s in load_stages(root / "dvc.yaml", load_yaml(params_file))]
     assert names == [n.replace("demo@demo", "demo") for n in order if n != "report"]

@@ -6,16 +6,17 @@ from __future__ import annotations
 import sys
 
 import pytest
-from dvc.utils.serialize import load_yaml
 
 from dexflow.errors import ConfigError
 from dexflow.pipeline.executor import run_command
 from dexflow.pipeline.registry import Stage, load_stages, pipeline_file, stage_spec
+from tests.test_dvc_deps import _params_with_track
 from tests.test_import_graph import ROOT, STAGE_MODULES, imports_of_file
 
 
 def _stages() -> list[Stage]:
-    return load_stages(pipeline_file(), load_yaml(ROOT / "params.yaml"))
+    """The stages with params.yaml as ``track=on`` composes it: every stage present."""
+    return load_stages(pipeline_file(), _params_with_track())
 
 
 def test_registry_reads_the_project_pipeline():

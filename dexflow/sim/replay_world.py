@@ -317,7 +317,7 @@ class ReplayWorld(MujocoGraspWorld):
             The rows of :class:`~dexflow.io.artifacts.ReplayResult` (errors against ``poses``).
         """
         self._require_object("replay")
-        start, first, end = window
+        start, _, end = window
         q = np.array(q, dtype=float)
         q[:, 3:6] = np.unwrap(q[:, 3:6], axis=0)  # hinge targets without 2 pi jumps
         targets = q if targets is None else np.asarray(targets, dtype=float)
@@ -354,11 +354,7 @@ def replay_world(
 ) -> ReplayWorld:
     """One world per process and hand (loading and checking the model once)."""
     world = _WORLDS.get(id(hand))
-    if (
-        world is None
-        or world.replay_params != params
-        or world.squeeze_reach_m != squeeze_reach_m
-    ):
+    if world is None or world.replay_params != params or world.squeeze_reach_m != squeeze_reach_m:
         world = ReplayWorld(hand, params, squeeze_reach_m)
         _WORLDS[id(hand)] = world
     return world

@@ -202,7 +202,7 @@ def grip_schedule(poses: np.ndarray, window: tuple[int, int, int], ramp: int) ->
     frames before the **lift** (the first frame after the first contact where the recorded
     object is 1 cm from where it was then: fingers closing on an object at rest shove it), 1
     from the lift to the window's end, linear between."""
-    start, first, end = window
+    _, first, end = window
     position = poses[:, :3, 3]
     moved = np.linalg.norm(position[first : end + 1] - position[first], axis=1) > 0.01
     lift = first + (int(np.argmax(moved)) if moved.any() else end - first)

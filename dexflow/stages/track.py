@@ -42,9 +42,9 @@ from dexflow.params import PipelineParams
 from dexflow.pipeline.labelled import labelled_hand, load_labelled
 from dexflow.pipeline.resume import StageOutput
 from dexflow.pipeline.runner import StageSpec
+from dexflow.sim.replay_criteria import replay_window, sequence_result
 from dexflow.sim.replay_world import replay_world
 from dexflow.sim.track import TrackSettings, track_sequence
-from dexflow.stages.replay import replay_window, sequence_result
 
 __all__ = ["STAGE", "run_track", "settings_of"]
 
