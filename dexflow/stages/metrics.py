@@ -117,7 +117,7 @@ __all__ = [
     "trajectory_metrics",
 ]
 
-METHODS = TRAJECTORIES
+METHODS = TRAJECTORIES[:3]  # the methods every project has; track's with track=on
 
 
 # ------------------------------------------------------------------------ hand-object measures
@@ -318,7 +318,8 @@ def _simulation(summary: Path) -> dict[str, dict]:
 def run_metrics(params: PipelineParams, layout: Layout) -> dict:
     """Stage runner: metrics of every sequence and method, aggregates and per-frame tables.
 
-    Reads every trajectory (:data:`METHODS`), stage contact's states, stage scale_align's
+    Reads every trajectory (params.yaml's ``methods``: :data:`METHODS`, and ``track`` with
+    track=on), stage contact's states, stage scale_align's
     sequences and objects and stage simulate's summaries; writes the per-frame arrays
     (``layout.metrics``), ``sequences.csv`` and the per-frame plot CSVs (``layout.plots``).
 
@@ -327,20 +328,21 @@ def run_metrics(params: PipelineParams, layout: Layout) -> dict:
         counts and, under ``"sequences"``, every sequence's entry.
     """
     aligned, contacts, out = layout.scale_align, layout.contact, layout.metrics
+    methods = list(params.methods)
     stage = StageOutput(
         out,
         "metrics",
         # simulate's params too: its summaries (ssr) are read, and a resumed run must not reuse
         # entries made from another simulation's
         {"hand": params.hand, "metrics": params.metrics, "simulate": params.simulate},
-        inputs=[layout.trajectory(m) for m in METHODS]
+        inputs=[layout.trajectory(m) for m in methods]
         + [contacts, aligned]
-        + [layout.simulate(m) for m in METHODS]
+        + [layout.simulate(m) for m in methods]
         + [layout.hand_files],
     )
     files = stage.start()
     spec, mp = staged_spec(params.hand, layout.hand_files.root), params.metrics
-    simulated = {m: _simulation(layout.simulate(m).summary) for m in METHODS}
+    simulated = {m: _simulation(layout.simulate(m).summary) for m in methods}
 
     def one(path: Path) -> dict:
         torch.set_num_threads(1)
@@ -353,7 +355,7 @@ def run_metrics(params: PipelineParams, layout: Layout) -> dict:
         sdf = ObjectAssets(aligned.object_of(seq.obj_mesh)).sdf()
         entry = {"object": seq.obj_name, "frames": frames, "methods": {}}
         per_frame = {}
-        for method in METHODS:
+        for method in methods:
             q = read_trajectory(
                 layout.trajectory(method).sequence(path), hand.joint_names, frames
             ).q
@@ -389,7 +391,7 @@ def run_metrics(params: PipelineParams, layout: Layout) -> dict:
         **_aggregate(ok, mp.kl_bins),
         **{k: counts[k] for k in ("num_sequences", "num_ok", "num_failed", "num_frames")},
     }
-    _write_tables(ok, spec.name, layout.metrics_table, layout.plots)
+    _write_tables(ok, spec.name, layout.metrics_table, layout.plots, methods)
     summary["sequences"] = dict(sorted(tally.sequences.items()))
     stage.finish(summary)
     return summary
@@ -400,7 +402,8 @@ def _aggregate(ok: dict[str, dict], kl_bins: int) -> dict:
     largest), ``velocity_kl`` (the speeds of all sequences pooled, ``kl_bins`` bins) and
     contact precision/recall (counts pooled)."""
     out: dict = {}
-    for method in METHODS:
+    methods = list(next(iter(ok.values()))["methods"]) if ok else []
+    for method in methods:
         rows = [e["methods"][method] for e in ok.values()]
         keys = sorted({k for row in rows for k in row})
         for key in keys:
@@ -424,9 +427,11 @@ def _aggregate(ok: dict[str, dict], kl_bins: int) -> dict:
     return out
 
 
-def _write_tables(ok: dict[str, dict], hand: str, table: Path, plots: Path) -> None:
+def _write_tables(
+    ok: dict[str, dict], hand: str, table: Path, plots: Path, methods: list[str]
+) -> None:
     """``table`` (``sequences.csv``: one row per sequence and method) and the per-frame plot
-    CSVs in ``plots``."""
+    CSVs in ``plots`` (a column per method)."""
     table.parent.mkdir(parents=True, exist_ok=True)
     plots.mkdir(parents=True, exist_ok=True)
     columns = ["sequence", "object", "hand", "method", "frames", "keypoint_error_mm",
@@ -437,7 +442,7 @@ def _write_tables(ok: dict[str, dict], hand: str, table: Path, plots: Path) -> N
         writer = csv.writer(f)
         writer.writerow(columns)
         for name, e in sorted(ok.items()):
-            for method in METHODS:
+            for method in methods:
                 m = e["methods"][method]
                 row = [name, e["object"], hand, method, e["frames"]]
                 writer.writerow(row + [_fmt(m.get(k, np.nan)) for k in columns[5:]])
@@ -447,8 +452,11 @@ def _write_tables(ok: dict[str, dict], hand: str, table: Path, plots: Path) -> N
             yield [name, t, f"{frames.time[t]:.4f}", *values(frames, t)]
 
     tables = {
-        "keypoint_error.csv": ([*METHODS], lambda f, t: _per_method_mm(f, "keypoint_error_m", t)),
-        "penetration.csv": ([*METHODS], lambda f, t: _per_method_mm(f, "pd_m", t)),
+        "keypoint_error.csv": (
+            methods,
+            lambda f, t: _per_method_mm(f, methods, "keypoint_error_m", t),
+        ),
+        "penetration.csv": (methods, lambda f, t: _per_method_mm(f, methods, "pd_m", t)),
         "contact_timeline.csv": (["fingers_in_contact"], lambda f, t: [int(f.contact[t].sum())]),
     }
     for filename, (header, values) in tables.items():
@@ -461,8 +469,8 @@ def _write_tables(ok: dict[str, dict], hand: str, table: Path, plots: Path) -> N
                 writer.writerow([step, *row])
 
 
-def _per_method_mm(frames: MetricFrames, key: str, t: int) -> list[str]:
-    return [_fmt(frames.methods[m][key][t] * 1000) for m in METHODS]
+def _per_method_mm(frames: MetricFrames, methods: list[str], key: str, t: int) -> list[str]:
+    return [_fmt(frames.methods[m][key][t] * 1000) for m in methods]
 
 
 def _fmt(value) -> str:
@@ -481,7 +489,8 @@ def _describe(s: dict) -> str:
         ).format(method, *values)
 
     counts = f"{s['num_ok']}/{s['num_sequences']} sequences"
-    return "; ".join([counts, *(line(m) for m in METHODS)])
+    methods = [m for m in TRAJECTORIES if f"{m}.keypoint_error_mm" in s]
+    return "; ".join([counts, *(line(m) for m in methods)])
 
 
 STAGE = StageSpec(
