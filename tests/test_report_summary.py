@@ -160,6 +160,121 @@ def test_every_figure_says_what_it_averages(tmp_path, full_inputs):
         assert image.std() > 0.05, name
 
 
+# --- the fourth method, track (stage track, track=on) --------------------------------------------
+
+
+def _add_track(metrics, table, plots) -> None:
+    """What track=on adds to the report's inputs: track's aggregates, rows of sequences.csv and
+    plot columns, simulate@track, replay@track and stage track's own summary. Tracking holds
+    every sequence in the replay where refinement holds 1 of 8."""
+    aggregates = json.loads((metrics / "metrics.json").read_text())
+    aggregates |= {"track.ssr": 30.0, "track.ssr_paper": 45.0, "track.pd_mm": 2.5,
+                   "track.rms_acc": 3.0, "track.keypoint_error_mm": 12.0}  # fmt: skip
+    (metrics / "metrics.json").write_text(json.dumps(aggregates))
+    with open(table, newline="") as f:
+        rows = list(csv.DictReader(f))
+    rows += [r | {"method": "track", "pd_mm": "2.5", "ssr": "100.0" if i < 3 else "0.0"}
+             for i, r in enumerate(r for r in rows if r["method"] == "refine")]  # fmt: skip
+    with open(table, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    for name in ("keypoint_error.csv", "penetration.csv"):
+        lines = (plots / name).read_text().splitlines()
+        (plots / name).write_text("\n".join([lines[0] + ",track"] +
+                                             [f"{r},{i + 5}" for i, r in enumerate(lines[1:])]) + "\n")  # fmt: skip
+    sim = json.loads((metrics / "simulate_refine.json").read_text()) | {"ssr": 30.0}
+    (metrics / "simulate_track.json").write_text(json.dumps(sim))
+    replay = json.loads((metrics / "replay_refine.json").read_text())
+    replay |= {"success_rate": 100.0, "spider_success_rate": 100.0, "carried_rate": 100.0,
+               "lost_rate": 0.0}  # fmt: skip
+    (metrics / "replay_track.json").write_text(json.dumps(replay))
+    tracked = {"num_tracked": 8, "feasible_rate": 75.0, "position_error_mean_m": 0.02,
+               "rotation_error_mean_rad": 0.1, "position_error_final_m": 0.03, "lost_rate": 12.5}  # fmt: skip
+    (metrics / "track_refine.json").write_text(json.dumps(tracked))
+
+
+def test_a_tracked_run_shows_the_fourth_method_wherever_the_three_are(tmp_path, full_inputs):
+    _add_track(*full_inputs)
+    text = _summary(tmp_path, full_inputs)
+    lines = text.splitlines()
+    box = lines[2 : lines.index("", 2)]
+    assert len(box) == 6 and all(line.startswith("> ") for line in box)
+    assert len(re.findall(INTERVAL, box[1])) == 4  # SSR: one per method, track's included
+    assert f"DexFlow + tracking {rate_interval(3, 8).text(1)}" in box[1]
+    tracking = box[4]
+    assert tracking.startswith("> - **Tracking**")
+    assert (
+        f"DexFlow + tracking {rate_interval(8, 8).text(1)} vs DexFlow + refinement "
+        f"{rate_interval(1, 8).text(1)} (tracking above refinement, intervals apart)"
+    ) in tracking
+    assert "feasible (its replay succeeds) 75.0 % of the 8 tracked sequences" in tracking
+    assert "Caveats" in box[5]
+
+    label = "| DexFlow + tracking (physics) |"
+    for section in ("Grasp quality", "Simulation", "Motion quality"):
+        assert sum(line.startswith(label) for line in _section(text, section).splitlines()) == 1
+    replay = _section(text, "Replay")
+    assert label + " 8 | 0 | 100.0 |" in replay
+    assert "8 sequences tracked, *feasible* (the tracked trajectory's replay succeeds) 75.0 %" in (
+        replay
+    )
+    assert "| | baseline | retarget | refine | track | sequences | interval |" in text
+    assert "*DexFlow + tracking (physics)*: stage track's" in _section(text, "Definitions")
+
+    def read(name: str) -> list[dict]:
+        with open(tmp_path / name, newline="") as f:
+            return list(csv.DictReader(f))
+
+    assert [r["method"] for r in read("summary_grasp.csv")][3] == "DexFlow + tracking (physics)"
+    assert len(read("summary_objects.csv")[0]) == 2 + 4 * 4  # every metric, every method
+    spread = {(r["metric"], r["method"]): r for r in read("summary_spread.csv")}
+    assert float(spread["replay success %", "track"]["value"]) == 100.0
+
+
+def test_without_track_the_summary_is_the_same_bytes_as_before_it(tmp_path, full_inputs):
+    """Track's rows, columns and lines come from its inputs alone: a run without them writes
+    what it wrote before, and nothing names tracking."""
+    metrics, table, plots = full_inputs
+    saved = {p: p.read_bytes() for p in (metrics / "metrics.json", table,
+                                         plots / "keypoint_error.csv", plots / "penetration.csv")}  # fmt: skip
+
+    def outputs(name: str) -> dict[str, bytes]:
+        out = tmp_path / name
+        write_summary(metrics, table, plots, out / "summary.md", out / "figures",
+                      data_name="demo")  # fmt: skip
+        return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*.*"))}
+
+    before = outputs("before")
+    assert b"track" not in before["summary.md"] and b"tracking" not in before["summary_grasp.csv"]
+    assert len(before["summary.md"].decode().splitlines()[2:7]) == 5
+    _add_track(metrics, table, plots)
+    tracked = outputs("tracked")
+    changed = {k for k in before if tracked[k] != before[k]}
+    assert {"summary.md", "summary_grasp.csv", "summary_spread.csv", "summary_simulation.csv",
+            "figures/summary_methods.png", "figures/summary_timeline.png"} <= changed  # fmt: skip
+    for path, data in saved.items():
+        path.write_bytes(data)
+    for name in ("simulate_track", "replay_track", "track_refine"):
+        (metrics / f"{name}.json").unlink()
+    assert outputs("after") == before
+
+
+def test_the_track_stage_summary_alone_shows_track(tmp_path, full_inputs):
+    """Stage track ran, its simulate and replay not (yet): track's rows read —, its line says
+    so, and the feasible rate comes from ``track_refine.json``."""
+    metrics, _, _ = full_inputs
+    (metrics / "track_refine.json").write_text(
+        json.dumps({"num_tracked": 4, "feasible_rate": 25.0})
+    )
+    text = _summary(tmp_path, full_inputs)
+    tracking = next(line for line in text.splitlines() if line.startswith("> - **Tracking**"))
+    assert "DexFlow + tracking — vs DexFlow + refinement" in tracking
+    assert "feasible (its replay succeeds) 25.0 % of the 4 tracked sequences" in tracking
+    grasp = _section(text, "Grasp quality")
+    assert "| DexFlow + tracking (physics) | — | — |" in grasp
+
+
 # --- the robot hand on the object ------------------------------------------------------------
 
 

@@ -2,12 +2,14 @@
 generated from its metrics.
 
 - :func:`write_summary` -> ``reports/summary.md`` (+ PNG figures, + CSV tables): a five-line
-  *key results* box (n, the headline per method with its 95 % interval, the caveats), the robot
-  hand on the object (:func:`write_hand_figure`), a few sentences on signals that look
-  contradictory, then the paper's Table II/III layout (baseline vs DexFlow vs DexFlow +
-  refinement) beside the published numbers, each rate and mean over sequences with its 95 %
-  interval (:mod:`dexflow.stats`), simulation, replay, contact quality, a per-object
-  breakdown, figures, provenance and, last, the definitions of every column.
+  *key results* box (n, the headline per method with its 95 % interval, the caveats; a sixth
+  line, tracking against refinement, where stage track ran), the robot hand on the object
+  (:func:`write_hand_figure`), a few sentences on signals that look contradictory, then the
+  paper's Table II/III layout (baseline vs DexFlow vs DexFlow + refinement, and DexFlow +
+  tracking where its inputs hold it: :func:`_methods`) beside the published numbers, each
+  rate and mean over sequences with its 95 % interval (:mod:`dexflow.stats`), simulation,
+  replay, contact quality, a per-object breakdown, figures, provenance and, last, the
+  definitions of every column.
 - Tables in the Markdown keep at most :data:`MAX_COLUMNS` columns; each full table goes to a CSV
   next to it (``summary_<table>.csv``, full precision), which the Markdown links.
 
@@ -16,7 +18,7 @@ The comparison of experiments (``reports/sweep.md``) is :mod:`dexflow.tools.expe
 The provenance (:mod:`dexflow.pipeline.provenance`) says the commit and machine the report was
 written on, the data, and the machine(s) the numbers were made on.
 
-**One file** (about 1100 lines): the summary is one document: each section is a function of its
+**One file** (about 1400 lines): the summary is one document: each section is a function of its
 own, in the order the summary shows them.
 """
 
@@ -35,6 +37,7 @@ from dexflow.pipeline import provenance
 from dexflow.pipeline.runner import StageSpec
 
 __all__ = [
+    "CORE_METHODS",
     "METHOD_LABELS",
     "METRICS",
     "PAPER",
@@ -51,7 +54,19 @@ METHOD_LABELS = {
     "baseline": "position baseline (DexRetarget-style)",
     "retarget": "DexFlow retargeting",
     "refine": "DexFlow + refinement",
+    "track": "DexFlow + tracking (physics)",
 }
+# The methods every summary shows (a stage that did not run: —); the others of METHOD_LABELS
+# (track, stage track's with ``track=on``) only where the inputs hold them (:func:`_methods`).
+CORE_METHODS = ("baseline", "retarget", "refine")
+SHORT_LABELS = {
+    "baseline": "baseline",
+    "retarget": "DexFlow",
+    "refine": "DexFlow + refinement",
+    "track": "DexFlow + tracking",
+}
+COLORS = {"baseline": "#999999", "retarget": "#4c72b0", "refine": "#55a868", "track": "#c44e52"}
+TRACK_SUMMARY = "track_refine"  # stage track@refine's reports/metrics/track_refine.json
 # Published (DexFlow paper, DexYCB, ShadowHand), only where the paper's definition is the one
 # dexflow computes (SSR by the paper's gravity protocol; PD, SPD and CD as BODex defines them),
 # as printed: the paper does not state their units. Not here, because no number of dexflow's
@@ -165,14 +180,16 @@ def write_summary(
     outputs.
 
     The summary opens with a five-line key-results box: n (sequences, frames, data, hand), the
-    headline per method with its 95 % interval (:mod:`dexflow.stats`), the caveats; then the
-    hand figure (``hand_figure``) and one sentence for each pair of signals that look
-    contradictory. Tables keep at most :data:`MAX_COLUMNS` columns; each full table is written
-    next to ``out_md`` as ``summary_<table>.csv`` and linked. The provenance
-    (:mod:`dexflow.pipeline.provenance`) says the commit and machine it is written on, the
-    data, and the machines and commits the stages behind its numbers ran on (they may have run
-    earlier, elsewhere: DVC restores outputs from its cache), flagged when they differ. The
-    definitions of every column close it. Same inputs, machine and commit: the same bytes.
+    headline per method with its 95 % interval (:mod:`dexflow.stats`), the caveats (a sixth
+    line, tracking against refinement, where stage track ran); then the hand figure
+    (``hand_figure``) and one sentence for each pair of signals that look contradictory. Tables
+    keep at most :data:`MAX_COLUMNS` columns; each full table is written next to ``out_md`` as
+    ``summary_<table>.csv`` and linked. The provenance (:mod:`dexflow.pipeline.provenance`)
+    says the commit and machine it is written on, the data, and the machines and commits the
+    stages behind its numbers ran on (they may have run earlier, elsewhere: DVC restores
+    outputs from its cache), flagged when they differ. The definitions of every column close
+    it. Same inputs, machine and commit: the same bytes. The methods: :data:`CORE_METHODS`, and
+    track wherever the inputs hold it (:func:`_methods`).
 
     Args:
         metrics_dir: ``reports/metrics`` (``metrics.json``, ``contact.json``, ...).
@@ -208,7 +225,8 @@ def write_summary(
     demo = data_name == "demo" if data_name else "contact.precision" in metrics
     data = data_name or ("demo" if demo else "your sequences")
     accounts = _read_json(stage_summary)
-    spread = _spread_rows(table, stage)
+    methods = _methods(metrics, stage, table)
+    spread = _spread_rows(table, stage, methods)
     frames = _frame_count(metrics, table)
 
     def csv_of(name: str) -> Path:
@@ -217,7 +235,7 @@ def write_summary(
     lines = [
         "# dexflow summary",
         "",
-        *_key_results(metrics, stage, spread, data, hand, frames, demo),
+        *_key_results(metrics, stage, spread, data, hand, frames, demo, methods),
         "",
     ]
     if hand_figure:
@@ -232,23 +250,29 @@ def write_summary(
         *_dropped_section(metrics, accounts),
         "## Grasp quality (paper Table II layout)",
         "",
-        *_method_table(metrics, TABLE_II, csv_of("grasp"), paper=True),
+        *_method_table(metrics, TABLE_II, csv_of("grasp"), methods, paper=True),
         "- Paper rows: DexFlow on DexYCB with ShadowHand, as published, only where the paper's "
         "definition is dexflow's; units as printed (the paper states none), dexflow's in mm.",
         "- " + _data_caveat(demo, data),
         "- The 95 % interval of each value: *Spread over sequences*; each column: *Definitions*.",
         "",
-        *_spread_section(spread, csv_of("spread")),
+        *_spread_section(spread, methods, csv_of("spread")),
         f"## Simulation ({_engines_title(stage)}: the paper's gravity test and DexGraspBench's "
         "push, six directions each)",
         "",
-        *_simulation_table(stage, csv_of("simulation")),
+        *_simulation_table(stage, methods, csv_of("simulation")),
         "",
         *_engines_section(stage),
-        *_replay_section(stage, replay_dirs or {}, figures_dir, rel, csv_of("replay")),
+        *_replay_section(
+            stage,
+            {m: d for m, d in (replay_dirs or {}).items() if m in methods},
+            figures_dir,
+            rel,
+            csv_of("replay"),
+        ),
         "## Motion quality (paper Table III layout)",
         "",
-        *_method_table(metrics, TABLE_III, csv_of("motion"), paper=False),
+        *_method_table(metrics, TABLE_III, csv_of("motion"), methods, paper=False),
         "- The paper's Table III numbers are not comparable (*Definitions*, *Grasp quality*).",
         "",
         "## Contact detection",
@@ -257,22 +281,41 @@ def write_summary(
         "",
         "## Per object",
         "",
-        *_per_object(table, csv_of("objects")),
+        *_per_object(table, methods, csv_of("objects")),
         "",
         "## Figures",
         "",
     ]
-    for name, caption in _figures(metrics, table, spread, Path(plots_dir), figures_dir):
+    figures = _figures(metrics, table, spread, Path(plots_dir), figures_dir, methods)
+    for name, caption in figures:
         lines += [f"![{caption}]({rel / name})", ""]
     lines += [
         *_provenance_section(metrics, frames, data, metrics_dir, timing_dir),
-        *_definitions(stage, replay_limits),
+        *_definitions(stage, replay_limits, methods),
     ]
     from dexflow.io.atomic import atomic_path
 
     with atomic_path(out_md) as tmp:
         tmp.write_text("\n".join(lines).rstrip() + "\n")
     return out_md
+
+
+def _methods(metrics: dict, stage: dict, table) -> tuple[str, ...]:
+    """The methods the summary shows: :data:`CORE_METHODS` always, then each other method of
+    :data:`METHOD_LABELS` (track) that the inputs hold: rows of ``sequences.csv``, aggregates
+    of ``metrics.json`` (``<method>.<metric>``), a simulate or replay summary (and for track,
+    stage track's summary)."""
+    held = set(table["method"]) if len(table) else set()
+
+    def present(m: str) -> bool:
+        return (
+            m in held
+            or any(k.startswith(f"{m}.") for k in metrics)
+            or any(f"{s}_{m}" in stage for s in ("simulate", "replay"))
+            or (m == "track" and TRACK_SUMMARY in stage)
+        )
+
+    return CORE_METHODS + tuple(m for m in METHOD_LABELS if m not in CORE_METHODS and present(m))
 
 
 def _frame_count(metrics: dict, table) -> int | None:
@@ -324,35 +367,48 @@ def _interval_text(interval: stats.Interval | None, digits: int) -> str:
     return "—" if interval is None else interval.text(digits)
 
 
-def _headline(spread: dict, key: str) -> str | None:
-    """``baseline v [l, h] · DexFlow ... · + refinement ...`` of a spread row, then how
-    refinement compares with the baseline (intervals apart or not); None if absent."""
+def _headline(spread: dict, key: str, methods) -> str | None:
+    """``baseline v [l, h] · DexFlow ... · + refinement ...`` of a spread row (each of
+    ``methods``), then how refinement compares with the baseline (intervals apart or not); None
+    if absent."""
     if key not in spread:
         return None
     _, cells, digits = spread[key]
-    short = {"baseline": "baseline", "retarget": "DexFlow", "refine": "DexFlow + refinement"}
-    text = " · ".join(f"{short[m]} {_interval_text(cells.get(m), digits)}" for m in METHOD_LABELS)
-    first, last = cells.get("baseline"), cells.get("refine")
+    text = " · ".join(f"{SHORT_LABELS[m]} {_interval_text(cells.get(m), digits)}" for m in methods)
+    verdict = _verdict(cells.get("refine"), cells.get("baseline"), "refinement", "the baseline")
+    return f"{text} ({verdict})" if verdict else text
+
+
+def _verdict(new, old, new_name: str, old_name: str) -> str | None:
+    """Whether the interval ``new`` lies above or below ``old`` (``refinement above the
+    baseline, intervals apart``) or overlaps it; None where either has no interval."""
     if (
-        first is None
-        or last is None
-        or not all(math.isfinite(x) for x in (first.low, first.high, last.low, last.high))
+        new is None
+        or old is None
+        or not all(math.isfinite(x) for x in (new.low, new.high, old.low, old.high))
     ):
-        return text
-    if last.low > first.high:
-        verdict = "refinement above the baseline, intervals apart"
-    elif last.high < first.low:
-        verdict = "refinement below the baseline, intervals apart"
-    else:
-        verdict = "refinement vs baseline: intervals overlap, not resolved"
-    return f"{text} ({verdict})"
+        return None
+    if new.low > old.high:
+        return f"{new_name} above {old_name}, intervals apart"
+    if new.high < old.low:
+        return f"{new_name} below {old_name}, intervals apart"
+    return f"{new_name} vs {old_name.removeprefix('the ')}: intervals overlap, not resolved"
 
 
 def _key_results(
-    metrics: dict, stage: dict, spread: dict, data: str, hand: str, frames, demo: bool
+    metrics: dict,
+    stage: dict,
+    spread: dict,
+    data: str,
+    hand: str,
+    frames,
+    demo: bool,
+    methods=CORE_METHODS,
 ) -> list[str]:
     """The five-line box: n; SSR, penetration and keypoint error, replay success per method
-    with their 95 % intervals; the caveats. Every number from the inputs."""
+    (``methods``) with their 95 % intervals; with track among ``methods``, a sixth line:
+    tracking's replay success against refinement's (:func:`_tracking_line`); the caveats.
+    Every number from the inputs."""
     sequences = metrics.get("num_input_sequences", metrics.get("num_sequences", "?"))
     dropped = metrics.get("num_dropped", 0)
     through = f" ({sequences - dropped} through every stage)" if dropped else ""
@@ -361,21 +417,24 @@ def _key_results(
         f"> **Key results.** n = {sequences} sequences{through}{frames_text}; data **{data}**; "
         f"hand **{hand}**. Per method: value [95 % interval] over the sequences."
     ]
-    grasp = _headline(spread, "ssr")
+    grasp = _headline(spread, "ssr", methods)
     lines.append(
         "> - **Grasp held in simulation** (SSR every test, % of sequences ↑): "
         + (grasp or "not measured")
     )
-    pd, keypoint = _headline(spread, "pd_mm"), _headline(spread, "keypoint_error_mm")
+    pd = _headline(spread, "pd_mm", methods)
+    keypoint = _headline(spread, "keypoint_error_mm", methods)
     lines.append(
         f"> - **Penetration** (PD, mm ↓): {pd or 'not measured'}; **keypoint error** (mm ↓): "
         f"{keypoint or 'not measured'}"
     )
-    replay = _headline(spread, "success_rate")
+    replay = _headline(spread, "success_rate", methods)
     lines.append(
         "> - **Replay success** (object carried along its recorded path, % of sequences ↑): "
         + (replay or "not replayed")
     )
+    if "track" in methods:
+        lines.append(_tracking_line(stage, spread))
     caveats = [_data_caveat(demo, data).rstrip(".")]
     spider = _spider_left_behind(stage)
     if spider:
@@ -386,6 +445,32 @@ def _key_results(
     caveats.append("intervals treat sequences as independent (sequences of one object are not)")
     lines.append("> - **Caveats**: " + "; ".join(caveats) + ".")
     return lines
+
+
+def _tracking_line(stage: dict, spread: dict) -> str:
+    """The key-results line of stage track: the tracked trajectories' replay success against
+    the refined ones' (intervals apart or not), and the share of tracked sequences whose
+    tracked trajectory is feasible (``track_refine.json``)."""
+    success = spread.get("success_rate")
+    if success is None or (success[1].get("track") is None and success[1].get("refine") is None):
+        text = "not replayed"
+    else:
+        _, cells, digits = success
+        text = " vs ".join(
+            f"{SHORT_LABELS[m]} {_interval_text(cells.get(m), digits)}" for m in ("track", "refine")
+        )
+        verdict = _verdict(cells.get("track"), cells.get("refine"), "tracking", "refinement")
+        text += f" ({verdict})" if verdict else ""
+    tracked = stage.get(TRACK_SUMMARY) or {}
+    if tracked.get("num_tracked") is not None:
+        text += (
+            f"; feasible (its replay succeeds) {cell(tracked.get('feasible_rate'), 1)} % of the "
+            f"{tracked['num_tracked']} tracked sequences"
+        )
+    return (
+        "> - **Tracking** (physics in the loop, stage track; replay success, % of sequences ↑): "
+        + text
+    )
 
 
 def _spider_left_behind(stage: dict) -> dict | None:
@@ -532,6 +617,7 @@ def _replay_section(
     lines += [
         "- *Success* = *SPIDER* (mean error small) and *carried* (final error small); "
         "*Definitions*, *Replay*.",
+        *_tracking_bullet(stage.get(TRACK_SUMMARY)),
         "",
     ]
     figure = _replay_figure(dirs, figures_dir)
@@ -539,6 +625,22 @@ def _replay_section(
         name, caption = figure
         lines += [f"![{caption}]({rel / name})", ""]
     return lines
+
+
+def _tracking_bullet(tracked: dict | None) -> list[str]:
+    """Stage track's own summary (``track_refine.json``) as one bullet; none without it."""
+    if not tracked:
+        return []
+    position = _scaled(tracked.get("position_error_mean_m"), 100)
+    final = _scaled(tracked.get("position_error_final_m"), 100)
+    return [
+        f"- *{METHOD_LABELS['track']}* (stage track, `track=on`): "
+        f"{tracked.get('num_tracked', 0)} sequences tracked, *feasible* (the tracked "
+        f"trajectory's replay succeeds) {cell(tracked.get('feasible_rate'), 1)} % of them; "
+        f"object error {cell(position, 1)} cm (final {cell(final, 1)} cm), "
+        f"{cell(tracked.get('rotation_error_mean_rad'))} rad; lost "
+        f"{cell(tracked.get('lost_rate'), 0)} % (`reports/metrics/{TRACK_SUMMARY}.json`)."
+    ]
 
 
 def _scaled(value, factor: float):
@@ -582,12 +684,11 @@ def _replay_figure(dirs: dict, figures_dir: Path) -> tuple[str, str] | None:
         return None
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 3.8))
-    colors = dict(zip(METHOD_LABELS, ["#999999", "#4c72b0", "#55a868"], strict=True))
     for m, curve in curves.items():
         frames = np.arange(len(curve))
         n = counts[m]
-        ax.plot(frames, curve[:, 0], label=f"{METHOD_LABELS[m]} (n = {n})", color=colors[m])
-        ax.fill_between(frames, curve[:, 1], curve[:, 2], color=colors[m], alpha=0.2, lw=0)
+        ax.plot(frames, curve[:, 0], label=f"{METHOD_LABELS[m]} (n = {n})", color=COLORS[m])
+        ax.fill_between(frames, curve[:, 1], curve[:, 2], color=COLORS[m], alpha=0.2, lw=0)
     ax.set_xlabel("frames since the sequence's first contact")
     ax.set_ylabel("object position error (cm)")
     sizes = sorted(set(counts.values()))
@@ -721,17 +822,17 @@ REPLAY_RATES = {
 }
 
 
-def _spread_rows(table, stage: dict) -> dict[str, tuple[str, dict, int]]:
+def _spread_rows(table, stage: dict, methods=CORE_METHODS) -> dict[str, tuple[str, dict, int]]:
     """Each rate and mean over sequences with its 95 % interval (:mod:`dexflow.stats`), by key:
-    ``(label, {method: Interval or None}, digits)``. The columns of ``sequences.csv``, the
-    simulate stage's SSRs that are not in it (without the penetration rule, per engine), the
-    replay stage's rates."""
+    ``(label, {method: Interval or None}, digits)`` for each of ``methods``. The columns of
+    ``sequences.csv``, the simulate stage's SSRs that are not in it (without the penetration
+    rule, per engine), the replay stage's rates."""
     rows: dict[str, tuple[str, dict[str, stats.Interval | None], int]] = {}
     for key, (digits, rate) in SPREAD_COLUMNS.items():
         if key not in getattr(table, "columns", ()):
             continue
         cells = {}
-        for m in METHOD_LABELS:
+        for m in methods:
             values = table.loc[table["method"] == m, key].to_numpy(dtype=float)
             found = stats.sequence_interval(values, rate=rate, lower=0.0)  # none is negative
             cells[m] = found if len(values) else None
@@ -748,10 +849,10 @@ def _spread_rows(table, stage: dict) -> dict[str, tuple[str, dict, int]]:
     for key, label in keys.items():
         cells = {m: stats.rate_of_sequences(simulated.get(m, {}).get(key),
                                             simulated.get(m, {}).get("num_ok"))
-                 for m in METHOD_LABELS}  # fmt: skip
+                 for m in methods}  # fmt: skip
         if any(cells.values()):
             rows[key] = (label, cells, 1)
-    replayed = {m: stage.get(f"replay_{m}") or {} for m in METHOD_LABELS}
+    replayed = {m: stage.get(f"replay_{m}") or {} for m in methods}
     for key, label in REPLAY_RATES.items():
         cells = {m: stats.rate_of_sequences(r.get(key), r.get("num_scored", r.get("num_replayed")))
                  for m, r in replayed.items()}  # fmt: skip
@@ -760,8 +861,9 @@ def _spread_rows(table, stage: dict) -> dict[str, tuple[str, dict, int]]:
     return rows
 
 
-def _spread_section(rows: dict, csv_path: Path | None = None) -> list[str]:
-    """:func:`_spread_rows` as a table (the bounds, unrounded, to ``csv_path``)."""
+def _spread_section(rows: dict, methods=CORE_METHODS, csv_path: Path | None = None) -> list[str]:
+    """:func:`_spread_rows` as a table, a column per method (the bounds, unrounded, to
+    ``csv_path``)."""
     if not rows:
         return []
     lines = [
@@ -775,8 +877,8 @@ def _spread_section(rows: dict, csv_path: Path | None = None) -> list[str]:
         lines.append("- " + _csv_link(csv_path))
     lines += [
         "",
-        "| | " + " | ".join(METHOD_LABELS) + " | sequences | interval |",
-        "|---" * (len(METHOD_LABELS) + 3) + "|",
+        "| | " + " | ".join(methods) + " | sequences | interval |",
+        "|---" * (len(methods) + 3) + "|",
     ]
     full = []
     for label, cells, digits in rows.values():
@@ -784,7 +886,7 @@ def _spread_section(rows: dict, csv_path: Path | None = None) -> list[str]:
         counts = [str(c.n) for c in found]
         n = counts[0] if len(set(counts)) == 1 else ", ".join(counts)
         kinds = ", ".join(sorted({"Wilson" if c.method == "wilson" else "t" for c in found}))
-        texts = ["—" if c is None else c.text(digits) for c in cells.values()]
+        texts = ["—" if cells.get(m) is None else cells[m].text(digits) for m in methods]
         lines.append(f"| {label} | " + " | ".join(texts) + f" | {n} | {kinds} |")
         for m, c in cells.items():
             if c is not None:
@@ -854,12 +956,15 @@ def _data_caveat(demo: bool, data: str) -> str:
     )
 
 
-def _method_table(metrics: dict, keys, csv_path: Path | None, paper: bool) -> list[str]:
-    """Methods by metrics (``keys``), with the paper's rows where ``paper``; the Markdown
+def _method_table(
+    metrics: dict, keys, csv_path: Path | None, methods=CORE_METHODS, paper: bool = False
+) -> list[str]:
+    """``methods`` by metrics (``keys``), with the paper's rows where ``paper``; the Markdown
     shows the first :data:`MAX_COLUMNS` - 1 metrics, ``csv_path`` gets them all."""
     shown = list(keys)[: MAX_COLUMNS - 1]
     rows_csv, rows_md = [], []
-    for method, label in METHOD_LABELS.items():
+    for method in methods:
+        label = METHOD_LABELS[method]
         values = [metrics.get(f"{method}.{k}") for k in keys]
         rows_csv.append([label, *values])
         rows_md.append([label] + [cell(v, 3 if k == "fvr" else 2)
@@ -953,13 +1058,14 @@ SIMULATION_COLUMNS = (  # (header, value of a simulate summary, digits), the sho
 )
 
 
-def _simulation_table(stage: dict, csv_path: Path | None = None) -> list[str]:
-    """SSR under both criteria, the frames tested and why frames fail, from
-    ``reports/metrics/simulate_<method>.json``; every column (the starting penetration with
+def _simulation_table(stage: dict, methods=CORE_METHODS, csv_path: Path | None = None) -> list[str]:
+    """SSR under both criteria, the frames tested and why frames fail, per method of
+    ``methods``, from ``reports/metrics/simulate_<method>.json``; every column (the starting penetration with
     and without the convex parts, the tests' agreement) to ``csv_path``."""
     shown = MAX_COLUMNS - 1
     rows_md, rows_csv = [], []
-    for method, label in METHOD_LABELS.items():
+    for method in methods:
+        label = METHOD_LABELS[method]
         sim = stage.get(f"simulate_{method}")
         values = [get(sim) if sim else None for _, get, _ in SIMULATION_COLUMNS]
         rows_csv.append([label, *values])
@@ -991,9 +1097,9 @@ def _criteria_agreement(sim: dict) -> float | None:
     return 100.0 * (counts[0] + counts[1]) / sum(counts)
 
 
-def _per_object(table, csv_path: Path | None = None) -> list[str]:
+def _per_object(table, methods=CORE_METHODS, csv_path: Path | None = None) -> list[str]:
     """Per object: the refined SSR and, for PD, CD and keypoint error, baseline -> refine
-    (means over the object's sequences); every method's to ``csv_path``."""
+    (means over the object's sequences); every method's (``methods``) to ``csv_path``."""
     if not len(table):
         return ["(no sequences)"]
     keys = [k for k in ("ssr", "pd_mm", "cd_mm", "keypoint_error_mm") if k in table.columns]
@@ -1017,46 +1123,49 @@ def _per_object(table, csv_path: Path | None = None) -> list[str]:
                 cells.append(f"{cell(mean(obj, k, 'baseline'))} -> {cell(mean(obj, k, 'refine'))}")
         rows_md.append([obj, str(int(counts.get(obj, 0))), *cells])
         rows_csv.append([obj, int(counts.get(obj, 0))]
-                        + [mean(obj, k, m) for k in keys for m in METHOD_LABELS])  # fmt: skip
+                        + [mean(obj, k, m) for k in keys for m in methods])  # fmt: skip
     lines = _markdown_table(header, rows_md)
     if csv_path is not None:
         _write_csv(csv_path, ["object", "n"] + [f"{METRICS[k][0]} {m}" for k in keys
-                                                 for m in METHOD_LABELS], rows_csv)  # fmt: skip
+                                                 for m in methods], rows_csv)  # fmt: skip
         lines += ["", "- " + _csv_link(csv_path) + " Also: every method, DexFlow retargeting's "
                   "included."]  # fmt: skip
     return lines
 
 
-COLORS = ("#999999", "#4c72b0", "#55a868")  # baseline, retarget, refine
-
-
 def _figures(
-    metrics: dict, table, spread: dict, plots_dir: Path, figures_dir: Path
+    metrics: dict,
+    table,
+    spread: dict,
+    plots_dir: Path,
+    figures_dir: Path,
+    methods=CORE_METHODS,
 ) -> list[tuple[str, str]]:
-    """Each metric per method (bars: the aggregate; whiskers: its 95 % interval where it has
-    one), PD per object (whiskers: the range of its sequences), and one sequence over time."""
+    """Each metric per method of ``methods`` (bars: the aggregate; whiskers: its 95 % interval
+    where it has one), PD per object (whiskers: the range of its sequences), and one sequence
+    over time."""
     import pandas as pd
 
     plt = pyplot()
     out = []
-    keys = [k for k in (*TABLE_II, *TABLE_III) if any(f"{m}.{k}" in metrics for m in METHOD_LABELS)]
+    keys = [k for k in (*TABLE_II, *TABLE_III) if any(f"{m}.{k}" in metrics for m in methods)]
     columns = (len(keys) + 1) // 2
     n = metrics.get("num_sequences", metrics.get("num_input_sequences"))
     fig, axes = plt.subplots(2, columns, figsize=(3 * columns, 6.4), squeeze=False)
     for ax, key in zip(np.ravel(axes), keys, strict=False):
-        values = np.array([metrics.get(f"{m}.{key}", np.nan) for m in METHOD_LABELS], float)
+        values = np.array([metrics.get(f"{m}.{key}", np.nan) for m in methods], float)
         intervals = spread.get(key, (None, {}, 0))[1]
-        low = [intervals[m].low if intervals.get(m) else np.nan for m in METHOD_LABELS]
-        high = [intervals[m].high if intervals.get(m) else np.nan for m in METHOD_LABELS]
+        low = [intervals[m].low if intervals.get(m) else np.nan for m in methods]
+        high = [intervals[m].high if intervals.get(m) else np.nan for m in methods]
         has = np.isfinite(low) & np.isfinite(high)
-        ax.bar(range(3), values, color=COLORS)
+        ax.bar(range(len(methods)), values, color=[COLORS[m] for m in methods])
         if has.any():
             centre = np.array([intervals[m].value if intervals.get(m) else np.nan
-                               for m in METHOD_LABELS])  # fmt: skip
+                               for m in methods])  # fmt: skip
             ax.errorbar(np.flatnonzero(has), centre[has],
                         yerr=[centre[has] - np.asarray(low)[has], np.asarray(high)[has] - centre[has]],
                         fmt="none", ecolor="k", capsize=3, lw=1)  # fmt: skip
-        ax.set_xticks(range(3), ["baseline", "retarget", "refine"], fontsize=8)
+        ax.set_xticks(range(len(methods)), list(methods), fontsize=8)
         suffix = "" if has.any() else "\n(no interval: pooled or not per sequence)"
         ax.set_title(METRICS[key][0] + suffix, fontsize=9)
     for ax in np.ravel(axes)[len(keys) :]:
@@ -1071,15 +1180,15 @@ def _figures(
         fig, ax = plt.subplots(figsize=(10, 4.4))
         grouped = table.groupby(["object", "method"])["pd_mm"]
         mean, low, high = (grouped.agg(f).unstack("method") for f in ("mean", "min", "max"))
-        methods = [m for m in METHOD_LABELS if m in mean.columns]
+        drawn = [m for m in methods if m in mean.columns]
         objects = list(mean.index)
-        width = 0.8 / len(methods)
-        for i, m in enumerate(methods):
-            x = np.arange(len(objects)) + (i - (len(methods) - 1) / 2) * width
-            ax.bar(x, mean[m], width, color=COLORS[list(METHOD_LABELS).index(m)], label=m)
+        width = 0.8 / len(drawn)
+        for i, m in enumerate(drawn):
+            x = np.arange(len(objects)) + (i - (len(drawn) - 1) / 2) * width
+            ax.bar(x, mean[m], width, color=COLORS[m], label=m)
             ax.errorbar(x, mean[m], yerr=[mean[m] - low[m], high[m] - mean[m]], fmt="none",
                         ecolor="k", capsize=2, lw=0.8)  # fmt: skip
-        counts = table[table["method"] == methods[-1]].groupby("object").size()
+        counts = table[table["method"] == drawn[-1]].groupby("object").size()
         ax.set_xticks(range(len(objects)),
                       [f"{o} (n = {counts.get(o, 0)})" for o in objects], rotation=45,
                       ha="right", fontsize=8)  # fmt: skip
@@ -1099,8 +1208,8 @@ def _figures(
         for ax, frame, label in ((axes[0], error, "keypoint error (mm)"),
                                  (axes[1], pen, "penetration (mm)")):  # fmt: skip
             rows = frame[frame["sequence"] == example]
-            for m, color in zip(METHOD_LABELS, COLORS, strict=True):
-                ax.plot(rows["time_s"], rows[m], label=m, color=color)
+            for m in (m for m in methods if m in rows.columns):
+                ax.plot(rows["time_s"], rows[m], label=m, color=COLORS[m])
             ax.set_ylabel(label)
         axes[0].legend(fontsize=8)
         axes[0].set_title(f"One sequence (n = 1, not a mean): {example}, per frame", fontsize=9)
@@ -1187,8 +1296,9 @@ def _hand_frames(entry: dict, num_frames: int, count: int) -> list[tuple[int, st
     ]
 
 
-def _definitions(stage: dict, limits: dict | None) -> list[str]:
-    """What every column means, as bullets under the section they belong to."""
+def _definitions(stage: dict, limits: dict | None, methods=CORE_METHODS) -> list[str]:
+    """What every column means, as bullets under the section they belong to (tracking's only
+    with track among ``methods``)."""
     spider = (
         f" ({100 * limits['position_m']:.0f} cm, {limits['rotation_rad']:g} rad in this run)"
         if limits
@@ -1273,6 +1383,17 @@ def _definitions(stage: dict, limits: dict | None) -> list[str]:
         "- *Left behind*: the mean error of an object that never moves; where it is below the "
         "threshold, SPIDER's criterion alone does not tell carrying from leaving the object "
         "where it was.",
+        *(
+            [
+                f"- *{METHOD_LABELS['track']}*: stage track's trajectories, searched in the "
+                "replay's own scene for the position targets under which the object follows its "
+                "recorded path (`dexflow/stages/track.py`); the replay replays their targets. "
+                "*Feasible*: a tracked trajectory whose replay succeeds, as a share of the "
+                "tracked sequences (those the replay scores).",
+            ]
+            if "track" in methods
+            else []
+        ),
         "",
         "### Motion quality",
         "",
