@@ -311,5 +311,5 @@ def test_an_experiment_whose_config_is_rejected_fails_alone(tmp_path, monkeypatc
 
 
 def test_an_unknown_suite_is_named():
-    with pytest.raises(KeyError, match="unknown ablation suite 'nope'; known: paper"):
+    with pytest.raises(KeyError, match="unknown ablation suite 'nope'; known: paper, track"):
         suite_experiments("nope")

@@ -99,3 +99,38 @@ def test_dvc_exp_run_composes_hydra_overrides(project):
     assert "pd_violation_m: 0.0042" in params
     shown = json.loads(_run(["dvc", "exp", "show", "--json"], project))
     assert "0.0042" in json.dumps(shown)
+
+
+def test_track_on_adds_a_fourth_method_the_same_on_any_worker_count(reproduced_demo, tmp_path):
+    """`dexflow params track=on` adds stage track@refine and the track method to simulate,
+    replay and metrics: `dvc repro` runs just those (and the report); the tracked trajectories
+    are byte for byte the same from two worker processes as from one."""
+    project = quick_pipeline.copy_reproduced(reproduced_demo, tmp_path / "p")
+    cli = [sys.executable, "-m", "dexflow.tools.cli", "params"]
+    quick = ["track=on", "track.samples=3", "track.iterations=1", "track.horizon_frames=3"]
+    _run([*cli, *quick], project)
+    ran = _ran(_run(["dvc", "repro"], project))
+    assert sorted(ran) == sorted(
+        ["hand", "track@refine", "simulate@track", "replay@track", "metrics", "report"]
+    )
+    track = json.loads((project / "data/track/summary.json").read_text())
+    assert track["num_ok"] == track["num_sequences"] == 2
+    assert track["num_tracked"] + sum(
+        not e["tracked"] for e in track["sequences"].values()
+    ) == 2
+    for entry in track["sequences"].values():
+        assert entry["feasible"] == (entry["tracked"] and entry["success"])
+    metrics = json.loads((project / "reports/metrics/metrics.json").read_text())
+    assert {"track.keypoint_error_mm", "track.pd_mm", "refine.pd_mm"} <= set(metrics)
+    replayed = json.loads((project / "reports/metrics/replay_track.json").read_text())
+    assert replayed["num_scored"] == track["num_tracked"]
+    assert json.loads((project / "reports/metrics/track_refine.json").read_text())[
+        "feasible_rate"
+    ] == pytest.approx(track["feasible_rate"], nan_ok=True)
+
+    sequences = project / "data/track/sequences"
+    one = {p.name: p.read_bytes() for p in sorted(sequences.glob("*.npz"))}
+    _run([*cli, *quick, "run=local", "run.n_jobs=2"], project)
+    _run([sys.executable, "stages/track.py", "refine"], project)
+    two = {p.name: p.read_bytes() for p in sorted(sequences.glob("*.npz"))}
+    assert len(one) == 2 and one == two

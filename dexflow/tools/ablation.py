@@ -55,6 +55,7 @@ from dexflow.tools.sweep import STATUS_FILE, UNFINISHED
 __all__ = [
     "METRIC_LABELS",
     "SUITES",
+    "SUITE_OVERRIDES",
     "Comparison",
     "ExperimentResult",
     "Question",
@@ -140,7 +141,33 @@ SUITES: dict[str, tuple[Question, ...]] = {
             ("keypoint_error_mm", "rms_acc", "pd_mm", "cd_mm", "ssr"),
         ),
     ),
+    # Stage track (every experiment with track=on: SUITE_OVERRIDES): what each part of the
+    # search buys in replay success, at what cost in fingertip error, penetration and time.
+    "track": (
+        Question(
+            "track_parts",
+            "What does each part of the tracking search buy?",
+            (
+                "track_no_prior",
+                "track_few_samples",
+                "track_short_horizon",
+                "track_no_contact_guidance",
+                "track_no_object_guidance",
+            ),
+            ("track",),
+            ("fingertip_error_mm", "pd_mm", "rms_acc"),
+            (
+                "replay_track.success_rate",
+                "replay_track.carried_rate",
+                "replay_track.position_error_mean_m",
+                "track_refine.feasible_rate",
+                "timing.track_refine.cpu_seconds_per_70_frames",
+            ),
+        ),
+    ),
 }
+# Hydra overrides a suite's every experiment (its default too) runs with.
+SUITE_OVERRIDES: dict[str, tuple[str, ...]] = {"track": ("track=on",)}
 
 # metric -> (label, unit, higher is better); also the labels of `dexflow exp`
 # (:func:`metric_label`)
@@ -162,6 +189,10 @@ METRIC_LABELS = {
     "contact.recall": ("contact recall", "", True),
     "timing.retarget_dexflow.frames_per_second": ("retarget speed", "frames/s", True),
     "success_rate": ("replay success", "%", True),
+    "carried_rate": ("replay carried", "%", True),
+    "position_error_mean_m": ("replay object error", "m", False),
+    "feasible_rate": ("feasible", "%", True),
+    "cpu_seconds_per_70_frames": ("track cost", "CPU s / 70 frames", False),
 }
 
 
@@ -558,7 +589,8 @@ def run_suite(
 
     Args:
         project: The project root (``conf/``, ``stages/``, ``dvc.yaml``, ``params.yaml``).
-        overrides: Hydra overrides for every experiment (``data=custom``, ``data.root=...``).
+        overrides: Hydra overrides for every experiment (``data=custom``, ``data.root=...``),
+            after the suite's own (:data:`SUITE_OVERRIDES`: ``track=on`` for suite track).
         run: False: only read what the directories hold.
     """
     from omegaconf import OmegaConf
@@ -568,6 +600,7 @@ def run_suite(
 
     project, jobs_dir = Path(project).resolve(), Path(jobs_dir).resolve()
     names = suite_experiments(suite)
+    overrides = [*SUITE_OVERRIDES.get(suite, ()), *(overrides or [])]
     machine = provenance.machine_id()
     results: dict[str, ExperimentResult] = {}
     for i, name in enumerate(names, 1):

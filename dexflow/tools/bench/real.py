@@ -61,6 +61,42 @@ def _real_engines(results: dict[str, dict]) -> list[str]:
     return lines
 
 
+def _replay_lines(results: dict[str, dict], names: dict[str, str]) -> list[str]:
+    """Stage replay per hand and method (success: SPIDER's thresholds and carried), and stage
+    track's cost where it ran; none without replays."""
+    rows = []
+    for hand, r in results.items():
+        for method, label in names.items():
+            s = r.get("replay", {}).get(f"replay@{method}")
+            if s:
+                rows.append(
+                    f"| {hand} | {label} | {s['num_scored']} | {s['success_rate']:.1f} | "
+                    f"{s['spider_success_rate']:.1f} | {s['carried_rate']:.1f} | "
+                    f"{s['lost_rate']:.0f} | {100 * s['position_error_mean_m']:.1f} | "
+                    f"{s['rotation_error_mean_rad']:.2f} |"
+                )
+    if not rows:
+        return []
+    lines = [
+        "Replay (the object free under gravity; `dexflow/stages/replay.py`):",
+        "",
+        "| hand | method | scored | success % | SPIDER % | carried % | lost % | object error cm "
+        "| rad |",
+        "|---|---|---|---|---|---|---|---|---|",
+        *rows,
+    ]
+    for hand, r in results.items():
+        track = r.get("replay", {}).get("track@refine")
+        if track:
+            timing = track.get("timing", {})
+            lines.append(
+                f"- {hand}, stage track: {track['num_tracked']} tracked, feasible "
+                f"{track['feasible_rate']:.1f} %; {timing.get('cpu_seconds_per_70_frames', 0):.1f} "
+                "CPU s per 70 frames of the replay window (one core)."
+            )
+    return lines
+
+
 def bench_real(
     root: str,
     hands: list[str] | None = None,
@@ -69,6 +105,7 @@ def bench_real(
     work: str | None = None,
     out: str | None = "reports/real.md",
     overrides: list[str] | None = None,
+    skip: list[str] | None = None,
 ) -> dict[str, dict]:
     """The whole pipeline (no demo stage) on a converted dataset, per hand, with its metrics.
 
@@ -76,7 +113,9 @@ def bench_real(
     ``work/<hand>`` (a temporary directory by default) with the project's ``conf/`` defaults
     plus ``overrides`` (Hydra syntax, e.g. ``simulate=both``), and the metrics stage's aggregates
     are tabulated per method: the numbers of docs/results.md. ``sequences > 0``
-    takes that many evenly spaced sequences.
+    takes that many evenly spaced sequences. ``skip`` leaves out the stages whose names start
+    with one of its entries (e.g. ``simulate``: the grasp tests, most of the time on many
+    sequences; the metrics then have no SSR).
 
     After the metrics' table the report says why targets are missed: per method how the grasp
     test's frames fail (:func:`grasp_breakdown`) and where refinement moved the fingertips
@@ -107,16 +146,18 @@ def bench_real(
         fixed = [f"hand={hand}", "data=custom", f"data.root={data_root}", f"run={run}"]
         params = load_params(compose_params([*fixed, *(overrides or [])], folder / "params.yaml"))
         params = dataclasses.replace(params, run=dataclasses.replace(params.run, n_jobs=workers))
-        seconds, summary, frames, simulated = {}, {}, 0, {}
+        seconds, summary, frames, simulated, replayed = {}, {}, 0, {}, {}
         layout = Layout.of(data_root, root=folder)
         for name, fn in pipeline_stages(params, layout):
-            if name == "demo":
+            if name == "demo" or any(name.startswith(prefix) for prefix in skip or ()):
                 continue
             start = time.perf_counter()
             summary = fn()
             seconds[name] = time.perf_counter() - start
             if name == "retarget@dexflow":
                 frames, count = int(summary["num_frames"]), int(summary["num_sequences"])
+            if name.startswith(("replay@", "track@")):
+                replayed[name] = {k: v for k, v in summary.items() if k != "sequences"}
             if name.startswith("simulate@"):
                 simulated[name.partition("@")[2]] = {
                     k: v for k, v in summary.items() if k not in ("sequences", "timing")
@@ -124,6 +165,7 @@ def bench_real(
         results[hand] = {
             "metrics": {k: v for k, v in summary.items() if k != "sequences"},
             "simulate": simulated,
+            "replay": replayed,
             "motion": refine_motion(params, layout),
             "grasps": {m: grasp_breakdown(layout.simulate(m), params.simulate) for m in simulated},
             "seconds": seconds,
@@ -314,14 +356,17 @@ def _real_table(
         "|---" * (len(REAL_COLUMNS) + 2) + "|",
     ]
     names = {"baseline": "position baseline", "retarget": "DexFlow retarget",
-             "refine": "DexFlow + refine"}  # fmt: skip
+             "refine": "DexFlow + refine", "track": "DexFlow + track"}  # fmt: skip
     for hand, r in results.items():
         for method, label in names.items():
+            if method == "track" and not any(k.startswith("track.") for k in r["metrics"]):
+                continue  # run without track=on
             cells = []
             for key, _, fmt in REAL_COLUMNS:
                 value = r["metrics"].get(f"{method}.{key}", float("nan"))
                 cells.append("—" if value is None or not np.isfinite(value) else fmt.format(value))
             lines.append(f"| {hand} | {label} | " + " | ".join(cells) + " |")
+    lines += ["", *_replay_lines(results, names), ""]
     lines += ["", *_real_engines(results), ""]
     for table in (_grasp_lines(results), _motion_lines(results)):
         lines += [*table, ""] if table else []

@@ -27,7 +27,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise SystemExit("dexflow bench real ROOT: give the converted dataset's root")
         bench_real(
             args.root, args.hands or None, args.jobs, args.subset, args.work, args.out_real,
-            overrides=args.set,
+            overrides=args.set, skip=args.skip,
         )  # fmt: skip
     elif args.what == "long":
         try:
@@ -155,7 +155,9 @@ def _ablation_suite(args: argparse.Namespace) -> int:
     from dexflow.tools import ablation
 
     root = project_root()
-    default_out = Path("reports") / "ablation.md"
+    default_out = Path("reports") / (
+        "ablation.md" if args.suite == "paper" else f"ablation_{args.suite}.md"
+    )
     out = Path(args.out) if args.out else default_out
     jobs = root / "multirun" / out.stem
     results = ablation.run_suite(args.suite, root, jobs, args.set, run=not args.no_run)
@@ -226,6 +228,11 @@ def add_commands(sub) -> None:
         "--set", action="append", default=[], metavar="KEY=VALUE",
         help="real: a Hydra override of the defaults (repeatable), e.g. --set simulate=both",
     )  # fmt: skip
+    p.add_argument(
+        "--skip", action="append", default=[], metavar="STAGE",
+        help="real: leave out the stages whose names start with this (repeatable), e.g. "
+        "--skip simulate (no grasp tests: no SSR)",
+    )  # fmt: skip
     p.set_defaults(func=_cmd_bench)
 
     p = sub.add_parser(
@@ -233,17 +240,19 @@ def add_commands(sub) -> None:
         help="write reports/summary.md, reports/ablation.md or reports/sweep.md",
         description="summary: reports/summary.md from reports/metrics (what the `report` "
         "stage runs). ablation --suite paper: run the paper's ablation experiments "
-        "(conf/experiment/) and write reports/ablation.md, one table per question. ablation "
+        "(conf/experiment/) and write reports/ablation.md, one table per question (--suite "
+        "track: stage track's parts, with track=on, to reports/ablation_track.md). ablation "
         "without --suite: reports/sweep.md, a table and a plot per swept parameter across the "
         "DVC experiments (dvc exp show) and/or Hydra multirun directories.",
         epilog="examples:\n  dexflow report summary\n"
         "  dexflow report ablation --suite paper\n"
+        "  dexflow report ablation --suite track\n"
         "  dexflow report ablation --multirun multirun/2024-05-01/12-00-00",
         formatter_class=HelpFormatter,
     )
     p.add_argument("what", choices=["summary", "ablation"])
     p.add_argument(
-        "--suite", choices=["paper"],  # dexflow.tools.ablation.SUITES (not imported at start-up)
+        "--suite", choices=["paper", "track"],  # dexflow.tools.ablation.SUITES (not imported)
         help="ablation: run the suite's named experiments (conf/experiment) in "
         "multirun/<out name>/, resuming finished ones, and write one table per question",
     )  # fmt: skip

@@ -1,0 +1,130 @@
+"""Stage track's search (dexflow.sim.track) on the three-finger gripper, upside down over a box on
+a table: fingers that stop short of the box drop it in the replay, and the tracked targets carry
+it; the tracked trajectory replays exactly as the search simulated it; a box out of reach stays
+out of reach (not feasible); the search is deterministic for a seed."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import trimesh
+
+from dexflow.hands import load_hand
+from dexflow.objects.convex import write_convex_obj
+from dexflow.params import ReplayParams
+from dexflow.sim.replay_criteria import sequence_result
+from dexflow.sim.replay_world import ReplayWorld
+from dexflow.sim.track import TrackSettings, grip_schedule, track_sequence
+
+from .test_hands import _gripper
+
+BOX = (0.024, 0.024, 0.03)
+FPS = 30.0
+APPROACH, HOLD, LIFT, TOP = 5, 8, 20, 12  # frames
+RISE_M = 0.15
+GAP_M = 0.003  # the "refined" fingers stop this far from the box
+SETTINGS = TrackSettings(horizon_frames=4, samples=6, iterations=1)  # quick: a test
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """The gripper upside down with its palm above a box; its fingers closed to ``GAP_M`` from
+    the box (touching in stage contact's eyes, gripping nothing) and the box's recorded lift."""
+    folder = tmp_path_factory.mktemp("track")
+    hand = load_hand(_gripper(folder))
+    write_convex_obj(folder / "box.obj", [trimesh.creation.box(BOX)])
+    params = ReplayParams(squeeze_m=SETTINGS.squeeze_m)
+    world = ReplayWorld(hand, params, SETTINGS.squeeze_reach_m)
+    world.set_object(folder / "box.obj")
+    opened = hand.zero()[0].numpy().copy()
+    opened[2], opened[3] = 0.3, np.pi  # base 30 cm up, turned about x: fingers point down
+    pose = np.eye(4)
+    pose[2, 3] = 0.3 - 0.01 - BOX[2] / 2  # under the palm (its face 1 cm below the base)
+    near = opened.copy()
+    for f in range(3):
+        j0 = hand.joint_names.index(f"f{f}_j0")
+        for angle in np.linspace(0.0, -0.5, 501):
+            near[j0] = angle
+            if world.gap(near, pose, [f"f{f}_prox", f"f{f}_dist"]) < GAP_M:
+                break
+        else:
+            raise AssertionError(f"finger {f} never came near the box")
+    frames = APPROACH + HOLD + LIFT + TOP
+    rise = np.concatenate(
+        [np.zeros(APPROACH + HOLD), np.linspace(0.0, RISE_M, LIFT), np.full(TOP, RISE_M)]
+    )
+    poses = np.repeat(pose[None], frames, axis=0)
+    poses[:, 2, 3] += rise
+    closing = np.clip(np.arange(frames) / APPROACH, 0.0, 1.0)[:, None]  # fingers close, then hold
+    q = opened + closing * (near - opened)
+    q[:, 2] += rise
+    fingers = np.zeros((frames, 3), dtype=bool)
+    fingers[APPROACH:] = True  # stage contact: all three on the box from the approach's end
+    window = (0, APPROACH, frames - 1)
+    return world, q, poses, fingers, window
+
+
+def _score(world, targets, poses, window):
+    rows = world.replay(targets, poses, FPS, window)
+    return rows, sequence_result(rows, window[1], poses, FPS, world.replay_params)
+
+
+def test_fingers_short_of_the_box_drop_it_and_the_tracked_targets_carry_it(scene):
+    world, q, poses, fingers, window = scene
+    _, before = _score(world, q, poses, window)
+    assert not before["carried"] and before["lost"]  # the box stays on its table
+    found = track_sequence(
+        world, q, poses, FPS, window, fingers, SETTINGS, np.random.default_rng(0)
+    )
+    rows, after = _score(world, found["targets"], poses, window)
+    assert after["success"] and after["carried"] and not after["lost"]
+    assert rows["object_position"][-1, 2] > poses[0, 2, 3] + 0.1  # really up in the air
+    # q is where the simulated hand was: its base within millimetres of the prior's
+    assert np.abs(found["q"][:, :3] - q[:, :3]).max() < 0.01
+    # the search's own rollout is the replay of its targets, to the bit
+    start, _, end = window
+    np.testing.assert_array_equal(rows["object_position"], found["object_pose7"][start:, :3])
+    np.testing.assert_array_equal(found["q"][end], world.hand_state())
+
+
+def test_a_box_out_of_reach_is_not_carried(scene):
+    """The box 30 cm to the side: no target near the prior reaches it, and the search does not
+    pretend so (not feasible)."""
+    world, q, poses, fingers, window = scene
+    far = poses.copy()
+    far[:, 0, 3] += 0.3
+    found = track_sequence(
+        world, q, far, FPS, window, fingers, SETTINGS, np.random.default_rng(0)
+    )
+    _, after = _score(world, found["targets"], far, window)
+    assert not after["success"] and not after["carried"]
+    assert np.abs(found["q"][:, :3] - q[:, :3]).max() < 0.05  # it stayed near the prior
+
+
+def test_search_is_deterministic_for_a_seed(scene):
+    world, q, poses, fingers, window = scene
+    short = dataclasses.replace(SETTINGS, samples=3)
+    runs = [
+        track_sequence(world, q, poses, FPS, window, fingers, short, np.random.default_rng(seed))
+        for seed in (7, 7, 8)
+    ]
+    for key in runs[0]:
+        np.testing.assert_array_equal(runs[0][key], runs[1][key], key)
+    assert not np.array_equal(runs[0]["targets"], runs[2]["targets"])
+
+
+def test_grip_ramps_in_before_the_lift():
+    """The squeeze is off while the object rests, ramps in over the frames before the lift (the
+    first frame the recorded object is 1 cm from its pose at the first contact) and stays on to
+    the window's end."""
+    poses = np.repeat(np.eye(4)[None], 30, axis=0)
+    poses[15:, 2, 3] = np.linspace(0.0, 0.1, 15)  # 1 cm up first at frame 17
+    share = grip_schedule(poses, (2, 5, 25), ramp=3)
+    lift = int(np.argmax(np.linalg.norm(poses[:, :3, 3], axis=1) > 0.01))
+    assert lift == 17
+    np.testing.assert_allclose(share[: lift - 3 + 1], 0.0)
+    np.testing.assert_allclose(share[lift - 2 : lift], [1 / 3, 2 / 3])
+    np.testing.assert_allclose(share[lift:26], 1.0)
+    np.testing.assert_allclose(share[26:], 0.0)
