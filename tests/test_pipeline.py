@@ -115,9 +115,7 @@ def test_track_on_adds_a_fourth_method_the_same_on_any_worker_count(reproduced_d
     )
     track = json.loads((project / "data/track/summary.json").read_text())
     assert track["num_ok"] == track["num_sequences"] == 2
-    assert track["num_tracked"] + sum(
-        not e["tracked"] for e in track["sequences"].values()
-    ) == 2
+    assert track["num_tracked"] + sum(not e["tracked"] for e in track["sequences"].values()) == 2
     for entry in track["sequences"].values():
         assert entry["feasible"] == (entry["tracked"] and entry["success"])
     metrics = json.loads((project / "reports/metrics/metrics.json").read_text())

@@ -95,9 +95,7 @@ def test_a_box_out_of_reach_is_not_carried(scene):
     world, q, poses, fingers, window = scene
     far = poses.copy()
     far[:, 0, 3] += 0.3
-    found = track_sequence(
-        world, q, far, FPS, window, fingers, SETTINGS, np.random.default_rng(0)
-    )
+    found = track_sequence(world, q, far, FPS, window, fingers, SETTINGS, np.random.default_rng(0))
     _, after = _score(world, found["targets"], far, window)
     assert not after["success"] and not after["carried"]
     assert np.abs(found["q"][:, :3] - q[:, :3]).max() < 0.05  # it stayed near the prior
