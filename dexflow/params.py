@@ -720,9 +720,13 @@ class TrackParams:
             rotation counted 0.1 m/rad, the fingers' mean 0.05 m/rad).
         rotation_weight_m_per_rad: Object rotation error counted as this many metres per rad.
         contact_weight: Cost (m) of a frame where none of stage contact's fingers touch.
-        squeeze_m: Contact guidance: a candidate with the fingers in contact targeted this far
-            into the object (0: none).
+        squeeze_m: Contact guidance: the fingers' targets pushed this far into the object where
+            stage contact has a finger on it (0: none) ...
+        squeeze_reach_m: ... every hand link within this of the object at its recorded pose.
+        grip_ramp_frames: The push ramps in over these frames before the lift.
         object_guidance: Candidates with the base shifted by the object's position error.
+        carry_gain: While two fingers touch the object, the base moves by this times its
+            position error (0: no feedback).
     """
 
     after: list[str]
@@ -737,7 +741,10 @@ class TrackParams:
     rotation_weight_m_per_rad: float
     contact_weight: float
     squeeze_m: float
+    squeeze_reach_m: float
+    grip_ramp_frames: int
     object_guidance: bool
+    carry_gain: float
 
     @property
     def enabled(self) -> bool:
@@ -749,7 +756,8 @@ def _validate_track(t: TrackParams, methods: dict) -> None:
     for key in ("horizon_frames", "iterations"):
         _require(getattr(t, key) >= 1, f"track.{key}", ">= 1", getattr(t, key))
     for key in ("samples", "noise_base_m", "noise_base_rad", "noise_finger_rad", "prior_weight",
-                "rotation_weight_m_per_rad", "contact_weight"):  # fmt: skip
+                "rotation_weight_m_per_rad", "contact_weight", "squeeze_reach_m",
+                "grip_ramp_frames", "carry_gain"):  # fmt: skip
         _require(getattr(t, key) >= 0, f"track.{key}", ">= 0", getattr(t, key))
     _require(0 <= t.squeeze_m <= 0.02, "track.squeeze_m", "within [0, 0.02] metres", t.squeeze_m)
     _require(list(t.after) in ([], ["refine"]), "track.after", "[] (off) or [refine]", t.after)

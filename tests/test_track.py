@@ -13,10 +13,10 @@ import trimesh
 
 from dexflow.hands import load_hand
 from dexflow.objects.convex import write_convex_obj
-from dexflow.params import ReplayParams
+from dexflow.params import ReplayParams, TrackParams
 from dexflow.sim.replay_criteria import sequence_result
 from dexflow.sim.replay_world import ReplayWorld
-from dexflow.sim.track import TrackSettings, grip_schedule, track_sequence
+from dexflow.sim.track import grip_schedule, track_sequence
 
 from .test_hands import _gripper
 
@@ -25,7 +25,7 @@ FPS = 30.0
 APPROACH, HOLD, LIFT, TOP = 5, 8, 20, 12  # frames
 RISE_M = 0.15
 GAP_M = 0.003  # the "refined" fingers stop this far from the box
-SETTINGS = TrackSettings(horizon_frames=4, samples=6, iterations=1)  # quick: a test
+SETTINGS = TrackParams(horizon_frames=4, samples=6, iterations=1)  # quick: a test
 
 
 @pytest.fixture(scope="module")

@@ -48,37 +48,15 @@ the pipeline seed and the sequence's name), MuJoCo steps single-threaded from a 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from dexflow.params import TrackParams
 from dexflow.sim.replay_world import ReplayWorld, replay_errors
 
-__all__ = ["TrackSettings", "track_sequence"]
+__all__ = ["grip_schedule", "track_sequence"]
 
 _BASE_ROT_LEVER_M = 0.1  # m/rad: the prior cost of a base rotation (palm to fingertip)
 _FINGER_LEVER_M = 0.05  # m/rad: the prior cost of a finger joint's rotation (a phalanx)
-
-
-@dataclass(frozen=True)
-class TrackSettings:
-    """The search's settings (``track`` in params.yaml; :mod:`dexflow.sim.track` explains
-    each)."""
-
-    horizon_frames: int = 6
-    samples: int = 16
-    iterations: int = 2
-    noise_base_m: float = 0.01
-    noise_base_rad: float = 0.05
-    noise_finger_rad: float = 0.1
-    prior_weight: float = 0.5
-    rotation_weight_m_per_rad: float = 0.2
-    contact_weight: float = 0.02
-    squeeze_m: float = 0.015
-    squeeze_reach_m: float = 0.03
-    object_guidance: bool = True
-    carry_gain: float = 1.0
-    grip_ramp_frames: int = 3
 
 
 def _finger_of_body(world: ReplayWorld) -> np.ndarray:
@@ -108,7 +86,7 @@ class _Rollouts:
         fps: float,
         first: int,
         fingers: np.ndarray,
-        settings: TrackSettings,
+        settings: TrackParams,
     ) -> None:
         self.world, self.prior, self.fps, self.s = world, prior, fps, settings
         self.goal = poses.copy()
@@ -184,7 +162,7 @@ class _Rollouts:
 
 
 def _noise(
-    rng: np.random.Generator, count: int, length: int, dof: int, s: TrackSettings, scale: float
+    rng: np.random.Generator, count: int, length: int, dof: int, s: TrackParams, scale: float
 ) -> np.ndarray:
     """(count, length, dof) perturbations: normal offsets at the horizon's first and last frame,
     linear between."""
@@ -228,7 +206,7 @@ def track_sequence(
     fps: float,
     window: tuple[int, int, int],
     fingers: np.ndarray,
-    settings: TrackSettings,
+    settings: TrackParams,
     rng: np.random.Generator,
     clamp=None,
 ) -> dict[str, np.ndarray]:

@@ -44,30 +44,11 @@ from dexflow.pipeline.resume import StageOutput
 from dexflow.pipeline.runner import StageSpec
 from dexflow.sim.replay_criteria import replay_window, sequence_result
 from dexflow.sim.replay_world import replay_world
-from dexflow.sim.track import TrackSettings, track_sequence
+from dexflow.sim.track import track_sequence
 
-__all__ = ["STAGE", "run_track", "settings_of"]
+__all__ = ["STAGE", "run_track"]
 
 logger = logging.getLogger(__name__)
-
-
-def settings_of(params: PipelineParams) -> TrackSettings:
-    """The search's settings from ``params.track``."""
-    t = params.track
-    return TrackSettings(
-        horizon_frames=t.horizon_frames,
-        samples=t.samples,
-        iterations=t.iterations,
-        noise_base_m=t.noise_base_m,
-        noise_base_rad=t.noise_base_rad,
-        noise_finger_rad=t.noise_finger_rad,
-        prior_weight=t.prior_weight,
-        rotation_weight_m_per_rad=t.rotation_weight_m_per_rad,
-        contact_weight=t.contact_weight,
-        squeeze_m=t.squeeze_m,
-        squeeze_reach_m=t.squeeze_reach_m,
-        object_guidance=t.object_guidance,
-    )
 
 
 def _clamp(hand):
@@ -86,7 +67,7 @@ def run_track(params: PipelineParams, layout: Layout, label: str = "refine") -> 
         under ``timing`` (returned, not written there).
     """
     out, aligned = layout.track, layout.scale_align
-    settings = settings_of(params)
+    settings = params.track
     world_params = dataclasses.replace(params.replay, squeeze_m=settings.squeeze_m)
     stage = StageOutput(
         out,
