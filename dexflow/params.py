@@ -710,27 +710,36 @@ class TrackParams:
             track) or ``["refine"]`` (``track=on``: stage ``track@refine``).
         trajectories: The folder stage metrics reads for it: ``data/track`` when on, else
             ``data/refine`` (a dep of stage metrics anyway; dvc.yaml's deps cannot be optional).
+        squeeze_m: Grip schedules: fingers in contact (stage contact) pushed this far into the
+            object ...
+        squeeze_reach_m: ... every hand link within this of it at its recorded pose.
+        schedule_scales: Grid of schedules: times ``squeeze_m`` the fingers press, ...
+        schedule_ramps: ... frames the press ramps in over, ...
+        schedule_leads: ... ending this many frames before the lift, ...
+        schedule_backoffs: ... the fingers held this times ``squeeze_m`` back until then.
+        mpc: Run the receding-horizon search around the best schedule.
         horizon_frames: Frames each candidate is rolled out ahead.
         samples: Random perturbations of the plan per round and frame.
         iterations: Rounds per frame, each around the best so far with its spread halved.
         noise_base_m: Standard deviation of the base's translation offsets (m).
         noise_base_rad: ... of its rotation offsets (rad, each Euler angle).
         noise_finger_rad: ... of every finger joint's offsets (rad).
-        prior_weight: Cost of leaving the refined trajectory per metre of base translation (base
-            rotation counted 0.1 m/rad, the fingers' mean 0.05 m/rad).
+        prior_weight: Cost of leaving the schedule's targets per metre of base translation
+            (base rotation counted 0.1 m/rad, the fingers' mean 0.05 m/rad).
         rotation_weight_m_per_rad: Object rotation error counted as this many metres per rad.
         contact_weight: Cost (m) of a frame where none of stage contact's fingers touch.
-        squeeze_m: Contact guidance: the fingers' targets pushed this far into the object where
-            stage contact has a finger on it (0: none) ...
-        squeeze_reach_m: ... every hand link within this of the object at its recorded pose.
-        grip_ramp_frames: The push ramps in over these frames before the lift.
         object_guidance: Candidates with the base shifted by the object's position error.
-        carry_gain: While two fingers touch the object, the base moves by this times its
-            position error (0: no feedback).
     """
 
     after: list[str]
     trajectories: str
+    squeeze_m: float
+    squeeze_reach_m: float
+    schedule_scales: list[float]
+    schedule_ramps: list[int]
+    schedule_leads: list[int]
+    schedule_backoffs: list[float]
+    mpc: bool
     horizon_frames: int
     samples: int
     iterations: int
@@ -740,11 +749,7 @@ class TrackParams:
     prior_weight: float
     rotation_weight_m_per_rad: float
     contact_weight: float
-    squeeze_m: float
-    squeeze_reach_m: float
-    grip_ramp_frames: int
     object_guidance: bool
-    carry_gain: float
 
     @property
     def enabled(self) -> bool:
@@ -756,9 +761,13 @@ def _validate_track(t: TrackParams, methods: dict) -> None:
     for key in ("horizon_frames", "iterations"):
         _require(getattr(t, key) >= 1, f"track.{key}", ">= 1", getattr(t, key))
     for key in ("samples", "noise_base_m", "noise_base_rad", "noise_finger_rad", "prior_weight",
-                "rotation_weight_m_per_rad", "contact_weight", "squeeze_reach_m",
-                "grip_ramp_frames", "carry_gain"):  # fmt: skip
+                "rotation_weight_m_per_rad", "contact_weight", "squeeze_reach_m"):  # fmt: skip
         _require(getattr(t, key) >= 0, f"track.{key}", ">= 0", getattr(t, key))
+    for key in ("schedule_scales", "schedule_ramps", "schedule_leads", "schedule_backoffs"):
+        values = list(getattr(t, key))
+        _require(bool(values) and min(values) >= 0, f"track.{key}", "a non-empty list, >= 0",
+                 values)  # fmt: skip
+    _require(min(t.schedule_ramps) >= 1, "track.schedule_ramps", "frames >= 1", t.schedule_ramps)
     _require(0 <= t.squeeze_m <= 0.02, "track.squeeze_m", "within [0, 0.02] metres", t.squeeze_m)
     _require(list(t.after) in ([], ["refine"]), "track.after", "[] (off) or [refine]", t.after)
     on = {"trajectories": TRACK_OUTPUT, "methods": {**METHODS, "track": TRACK_OUTPUT}}
