@@ -28,6 +28,8 @@ from dexflow.io.layout import TRAJECTORIES, Layout, StageDir
 from dexflow.io.sequence import save_sequence
 from dexflow.tools import cli
 from dexflow.tools.export import ExportError, collect_export, export_project, read_export
+from dexflow.tools.export.hdf5 import read_hdf5, write_hdf5
+from dexflow.tools.export.lerobot import read_lerobot, write_lerobot
 from dexflow.tools.viz import MissingInputError
 
 from .conftest import make_sequence
@@ -82,7 +84,12 @@ def make_project(root: Path) -> dict:
             q = rng.uniform(-1.0, 1.0, (frames, len(JOINTS)))
             q[:, 3:6] *= np.pi  # base rotations over the whole circle
             pd = np.where(rng.random(frames) < 0.3, rng.uniform(0, 0.01, frames), 0.0)
-            write_trajectory(layout.trajectory(method).sequence(name), Trajectory(q, JOINTS))
+            # stage track's trajectories also hold the position targets that reach q
+            targets = q + 0.05 if method == "track" else q
+            arrays = {"targets": targets} if method == "track" else {}
+            write_trajectory(
+                layout.trajectory(method).sequence(name), Trajectory(q, JOINTS, arrays)
+            )
             per_frame[name][method] = {"pd_m": pd, "spd_m": np.zeros(frames)}
             flags = {
                 "simulate_success": (index + m) % 2 == 0,
@@ -91,7 +98,12 @@ def make_project(root: Path) -> dict:
                 "replay_success": index == 0 and m == 2,
                 "replay_not_scored_reason": "no contact" if index == 2 else "",
             }
-            source["methods"][method][name] = {"q": q, "penetration_m": pd, **flags}
+            source["methods"][method][name] = {
+                "q": q,
+                "targets": targets,
+                "penetration_m": pd,
+                **flags,
+            }
         write_metric_frames(
             layout.metrics.sequence(name),
             MetricFrames(np.arange(frames) / seq.fps, contact, per_frame[name]),
@@ -380,3 +392,25 @@ def test_summary_entry_without_a_flag_is_an_error(project, tmp_path):
     save_json(out.summary, summary)
     with pytest.raises(ArtifactError, match=r"box__01_pinch has no 'success'.*simulate@refine"):
         export_project(root, tmp_path / "out.h5", "hdf5")
+
+
+def test_tracked_episodes_carry_their_targets_and_lerobot_acts_on_them(project, tmp_path):
+    """Stage track's q is where the simulated hand was, its targets what drove it there: the
+    export keeps both (HDF5 as they are; LeRobot's action is the next frame's target). The
+    kinematic methods' targets are their q."""
+    root, source = project
+    export = collect_export(root, "track")
+    for episode in export.episodes:
+        np.testing.assert_array_equal(
+            episode.targets, source["methods"]["track"][episode.sequence]["targets"]
+        )
+        assert not np.array_equal(episode.targets, episode.q)
+    back = read_hdf5(write_hdf5(export, tmp_path / "track.h5"))
+    for a, b in zip(export.episodes, back.episodes, strict=True):
+        np.testing.assert_array_equal(a.targets, b.targets)
+    lerobot = read_lerobot(write_lerobot(export, tmp_path / "lerobot"))
+    for a, b in zip(export.episodes, lerobot.episodes, strict=True):
+        np.testing.assert_allclose(b.targets[1:], a.targets[1:].astype(np.float32), rtol=0)
+    refine = collect_export(root, "refine")
+    for episode in refine.episodes:
+        np.testing.assert_array_equal(episode.targets, episode.q)

@@ -60,6 +60,7 @@ TRAJECTORIES: dict[str, str] = {
     "refine": "refine",
     "retarget": "retarget@dexflow",
     "baseline": "retarget@position",
+    "track": "track@refine",
 }
 
 _APPLICATION_ID = "dexflow"

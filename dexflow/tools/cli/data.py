@@ -298,7 +298,7 @@ def add_commands(sub) -> None:
     p.add_argument(
         "--trajectory",
         default="refine",
-        choices=["refine", "retarget", "baseline"],
+        choices=["refine", "retarget", "baseline", "track"],
         help="data/refine, data/retarget/dexflow or data/retarget/position",
     )
     p.add_argument("--out", default=None, help="the .rrd file (default reports/rerun/<name>.rrd)")

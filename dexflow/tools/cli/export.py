@@ -41,7 +41,7 @@ def add_commands(sub) -> None:
     p.add_argument(
         "--method",
         default="refine",
-        choices=["refine", "retarget", "baseline"],
+        choices=["refine", "retarget", "baseline", "track"],
         help="data/refine (default), data/retarget/dexflow or data/retarget/position",
     )
     p.set_defaults(func=_cmd_export)

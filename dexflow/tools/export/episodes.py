@@ -43,6 +43,9 @@ class Episode:
         side: The human hand's side, ``'right'`` or ``'left'``.
         mirrored: True if a left hand was mirrored to the right hand (x -> -x in the world).
         q: (T, dof) joint positions, the floating base's six first (radians, metres).
+        targets: (T, dof) the position targets that drive the hand to ``q`` (stage track's,
+            which press into the object: a position servo grips only that way); ``q`` itself
+            for the kinematic methods.
         base_pose: (T, 4, 4) the hand's root (floating base) to world.
         obj_pose: (T, 4, 4) object mesh to world.
         contact: (T, F) finger in contact with the object (stage contact's final states).
@@ -63,6 +66,7 @@ class Episode:
     side: str
     mirrored: bool
     q: np.ndarray
+    targets: np.ndarray
     base_pose: np.ndarray
     obj_pose: np.ndarray
     contact: np.ndarray
@@ -189,8 +193,8 @@ def collect_export(project_root: str | Path, method: str = "refine") -> Export:
 
     Args:
         project_root: The project (holding ``params.yaml`` and ``data/``).
-        method: ``refine`` (data/refine), ``retarget`` (data/retarget/dexflow) or ``baseline``
-            (data/retarget/position).
+        method: ``refine`` (data/refine), ``retarget`` (data/retarget/dexflow), ``baseline``
+            (data/retarget/position) or, with track=on, ``track`` (data/track).
 
     Raises:
         ExportError: unknown method, or no sequence could be exported.
@@ -251,6 +255,7 @@ def collect_export(project_root: str | Path, method: str = "refine") -> Export:
                 side=seq.side,
                 mirrored=bool(seq.mirrored),
                 q=trajectory.q,
+                targets=np.asarray(trajectory.arrays.get("targets", trajectory.q), np.float64),
                 base_pose=base_poses(trajectory.q[:, :6]),
                 obj_pose=np.asarray(seq.obj_pose, dtype=np.float64),
                 contact=found.final,

@@ -31,8 +31,8 @@ from dexflow.tools.export.episodes import Episode, Export, ExportError
 __all__ = ["FORMAT", "FORMAT_VERSION", "read_hdf5", "write_hdf5"]
 
 FORMAT = "dexflow-export"
-FORMAT_VERSION = 1
-ARRAYS = ("q", "base_pose", "obj_pose", "contact", "penetration_m", "valid")
+FORMAT_VERSION = 2  # 2: targets
+ARRAYS = ("q", "targets", "base_pose", "obj_pose", "contact", "penetration_m", "valid")
 ATTRS = ("sequence", "object", "object_mesh", "scale", "fps", "side", "mirrored", "simulate_success",
          "simulate_success_frame", "replay_scored", "replay_success",
          "replay_not_scored_reason")  # fmt: skip
@@ -94,7 +94,8 @@ def read_hdf5(path: str | Path) -> Export:
             attrs |= {k: bool(attrs[k]) for k in _BOOLS}
             attrs |= {k: float(attrs[k]) for k in ("fps", "scale")}
             attrs["simulate_success_frame"] = int(attrs["simulate_success_frame"])
-            arrays = {k: np.asarray(group[k][()]) for k in ARRAYS}
+            arrays = {k: np.asarray(group[k][()]) for k in ARRAYS if k in group}
+            arrays.setdefault("targets", arrays["q"])  # format 1: the kinematic q
             episodes.append(Episode(**attrs, **arrays))
         return Export(
             method=str(f.attrs["method"]),

@@ -13,7 +13,8 @@
     data/chunk-XXX/episode_XXXXXX.parquet   one row per frame
 
 Features (float32 unless said): ``observation.state`` = q (dof,), ``action`` = the next frame's
-q (the last frame repeats its own), ``observation.environment_state`` = the object pose
+position targets (:attr:`Episode.targets`: q itself but for stage track's, whose targets press
+into the object; the last frame repeats its own), ``observation.environment_state`` = the object pose
 ``[x, y, z, qw, qx, qy, qz]``, ``base_pose`` = the hand root's pose (same order), ``contact``
 (F,) bool, ``penetration_m``, ``valid`` bool, and LeRobot's ``timestamp``, ``frame_index``,
 ``episode_index``, ``index``, ``task_index``. Only ``observation.*`` and ``action`` are what
@@ -87,9 +88,10 @@ def _columns(episode: Episode, index: int, first: int, task: int, fps: float) ->
     """The episode's columns, by feature name (numpy arrays, one row per frame)."""
     frames = np.arange(episode.num_frames)
     q = episode.q.astype(np.float32)
+    targets = episode.targets.astype(np.float32)
     return {
         "observation.state": q,
-        "action": np.concatenate([q[1:], q[-1:]]),
+        "action": np.concatenate([targets[1:], targets[-1:]]),
         "observation.environment_state": pose_vector(episode.obj_pose).astype(np.float32),
         "base_pose": pose_vector(episode.base_pose).astype(np.float32),
         "contact": episode.contact.astype(bool),
@@ -298,6 +300,10 @@ def read_lerobot(path: str | Path) -> Export:
                 side=entry["side"],
                 mirrored=entry["mirrored"],
                 q=columns["observation.state"].astype(np.float64),
+                # action[t] is the target of frame t + 1: frame 0's is not stored (its state)
+                targets=np.concatenate(
+                    [columns["observation.state"][:1], columns["action"][:-1]]
+                ).astype(np.float64),
                 base_pose=pose_from_vector(columns["base_pose"]),
                 obj_pose=pose_from_vector(columns["observation.environment_state"]),
                 contact=columns["contact"].astype(bool),
