@@ -60,6 +60,11 @@ mean of the summary), the first that applies of:
 
 Vertical is world z, as for the replay's gravity and table.
 
+**Targets.** A trajectory is replayed on its ``q``: the base's servos and the fingers' actuators
+aim at it. A trajectory that also holds ``targets`` (stage track's: ``q`` is where the simulated
+hand got to, ``targets`` the position targets that took it there, pressing into the object) is
+replayed on those, base and fingers, and ``replay.squeeze_m`` does not apply to it.
+
 Per sequence: the object's position and rotation error against its recorded pose at every replayed
 frame; from the first contact on, their means (SPIDER's success), maxima and final values, SPIDER's
 success, carried and success (both), the frame where the object was **lost** (its error first
