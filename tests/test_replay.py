@@ -33,15 +33,9 @@ HOLD, LIFT, TOP = 10, 30, 30  # frames: closed on the box, lifting, held up
 RISE_M = 0.25
 
 
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    """The gripper turned upside down (fingers pointing down) with its palm on top of a box;
-    its fingers closed onto the box (within 0.5 mm), and the recorded box poses of a lift."""
-    folder = tmp_path_factory.mktemp("replay")
-    hand = load_hand(_gripper(folder))
-    write_convex_obj(folder / "box.obj", [trimesh.creation.box(BOX)])
-    world = ReplayWorld(hand, ReplayParams())
-    world.set_object(folder / "box.obj")
+def gripper_over_box(hand, world: ReplayWorld, gap_m: float):
+    """The gripper opened, turned upside down 30 cm up (fingers pointing down); the box's pose
+    under its palm; the gripper with each finger closed until ``gap_m`` from the box."""
     opened = hand.zero()[0].numpy().copy()
     opened[2], opened[3] = 0.3, np.pi  # base 30 cm up, turned about x: fingers point down
     pose = np.eye(4)
@@ -51,10 +45,23 @@ def scene(tmp_path_factory):
         j0 = hand.joint_names.index(f"f{f}_j0")
         for angle in np.linspace(0.0, -0.5, 501):
             closed[j0] = angle
-            if world.gap(closed, pose, [f"f{f}_prox", f"f{f}_dist"]) < 5e-4:
+            if world.gap(closed, pose, [f"f{f}_prox", f"f{f}_dist"]) < gap_m:
                 break
         else:
-            raise AssertionError(f"finger {f} never reached the box")
+            raise AssertionError(f"finger {f} never came within {gap_m} m of the box")
+    return opened, pose, closed
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """The gripper turned upside down (fingers pointing down) with its palm on top of a box;
+    its fingers closed onto the box (within 0.5 mm), and the recorded box poses of a lift."""
+    folder = tmp_path_factory.mktemp("replay")
+    hand = load_hand(_gripper(folder))
+    write_convex_obj(folder / "box.obj", [trimesh.creation.box(BOX)])
+    world = ReplayWorld(hand, ReplayParams())
+    world.set_object(folder / "box.obj")
+    opened, pose, closed = gripper_over_box(hand, world, 5e-4)
     rise = np.concatenate([np.zeros(HOLD), np.linspace(0.0, RISE_M, LIFT), np.full(TOP, RISE_M)])
     poses = np.repeat(pose[None], len(rise), axis=0)
     poses[:, 2, 3] += rise

@@ -19,8 +19,8 @@ from dexflow.sim.replay_world import ReplayWorld
 from dexflow.sim.track import grip_schedule, track_sequence
 
 from .test_hands import _gripper
+from .test_replay import BOX, gripper_over_box
 
-BOX = (0.024, 0.024, 0.03)
 FPS = 30.0
 APPROACH, HOLD, LIFT, TOP = 5, 8, 20, 12  # frames
 RISE_M = 0.15
@@ -40,19 +40,7 @@ def scene(tmp_path_factory):
     params = ReplayParams(squeeze_m=SETTINGS.squeeze_m)
     world = ReplayWorld(hand, params, SETTINGS.squeeze_reach_m)
     world.set_object(folder / "box.obj")
-    opened = hand.zero()[0].numpy().copy()
-    opened[2], opened[3] = 0.3, np.pi  # base 30 cm up, turned about x: fingers point down
-    pose = np.eye(4)
-    pose[2, 3] = 0.3 - 0.01 - BOX[2] / 2  # under the palm (its face 1 cm below the base)
-    near = opened.copy()
-    for f in range(3):
-        j0 = hand.joint_names.index(f"f{f}_j0")
-        for angle in np.linspace(0.0, -0.5, 501):
-            near[j0] = angle
-            if world.gap(near, pose, [f"f{f}_prox", f"f{f}_dist"]) < GAP_M:
-                break
-        else:
-            raise AssertionError(f"finger {f} never came near the box")
+    opened, pose, near = gripper_over_box(hand, world, GAP_M)
     frames = APPROACH + HOLD + LIFT + TOP
     rise = np.concatenate(
         [np.zeros(APPROACH + HOLD), np.linspace(0.0, RISE_M, LIFT), np.full(TOP, RISE_M)]
