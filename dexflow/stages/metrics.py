@@ -452,11 +452,8 @@ def _write_tables(
             yield [name, t, f"{frames.time[t]:.4f}", *values(frames, t)]
 
     tables = {
-        "keypoint_error.csv": (
-            methods,
-            lambda f, t: _per_method_mm(f, methods, "keypoint_error_m", t),
-        ),
-        "penetration.csv": (methods, lambda f, t: _per_method_mm(f, methods, "pd_m", t)),
+        "keypoint_error.csv": (methods, lambda f, t: _in_mm(f, methods, "keypoint_error_m", t)),
+        "penetration.csv": (methods, lambda f, t: _in_mm(f, methods, "pd_m", t)),
         "contact_timeline.csv": (["fingers_in_contact"], lambda f, t: [int(f.contact[t].sum())]),
     }
     for filename, (header, values) in tables.items():
@@ -469,7 +466,7 @@ def _write_tables(
                 writer.writerow([step, *row])
 
 
-def _per_method_mm(frames: MetricFrames, methods: list[str], key: str, t: int) -> list[str]:
+def _in_mm(frames: MetricFrames, methods: list[str], key: str, t: int) -> list[str]:
     return [_fmt(frames.methods[m][key][t] * 1000) for m in methods]
 
 
