@@ -298,7 +298,7 @@ def track_sequence(
         poses: (T, 4, 4) the recorded object poses.
         fps: Frames per second.
         window: ``(start, first_contact, end)``: the replay's window
-            (:func:`dexflow.stages.replay.replay_window`).
+            (:func:`dexflow.sim.replay_criteria.replay_window`).
         fingers: (T, F) stage contact's final states (which fingers touch the object).
         settings: The search's settings.
         rng: The random generator of the perturbations.

@@ -1,25 +1,28 @@
 """Stage track: refined trajectories the replay carries the object with (physics in the loop).
 
-For every sequence the replay scores (:func:`dexflow.stages.replay.replay_window`: in contact,
-supported, no free fall), :func:`dexflow.sim.track.track_sequence` searches, in the replay's own
-MuJoCo scene, for the position targets under which the object follows its recorded path
-(sampling MPC with the refined trajectory as its prior, the recorded object pose as its goal
-and stage contact's fingers as guidance; :mod:`dexflow.sim.track` explains it). The output is a
-trajectory like any other (``data/track/sequences/<name>.npz``, the fourth method ``track``
-beside baseline, retarget and refine): ``q`` is where the simulated hand is, ``targets`` the
-position targets that put it there (stage replay replays those), ``object_pose7`` the simulated
-object; outside the replay window both are the refined trajectory, and sequences the replay does
-not score are passed through unchanged (``tracked`` false, with the replay's reason).
+For every sequence the replay scores (:func:`dexflow.sim.replay_criteria.replay_window`: in
+contact, supported, no free fall), :func:`dexflow.sim.track.track_sequence` searches, in the
+replay's own MuJoCo scene, for the position targets under which the object follows its recorded
+path (contact-guided grip schedules, then a receding-horizon sampling search, the refined
+trajectory as the prior and the recorded object pose as the goal; :mod:`dexflow.sim.track`
+explains it). The output is a trajectory like any other (``data/track/sequences/<name>.npz``,
+the fourth method ``track`` beside baseline, retarget and refine): ``q`` is where the simulated
+hand is, ``targets`` the position targets that put it there (stage replay replays those),
+``object_pose7`` the simulated object; outside the replay window both are the refined
+trajectory, and sequences the replay does not score are passed through unchanged (``tracked``
+false, ``not_tracked_reason`` the replay's reason).
 
 **Feasible**: the tracked trajectory's replay succeeds by the replay's criteria (SPIDER's
-thresholds and carried). Per sequence: ``tracked``, ``feasible``, ``not_tracked_reason``, the
-replay's summary entry of the tracked trajectory (``success``, ``position_error_mean_m``, ...)
-and ``seconds`` (CPU seconds of the search). Summary: ``num_tracked``, ``feasible_rate`` (% of
-the tracked), ``seconds_per_frame`` (search CPU seconds per replayed frame; the stage's cost is
-linear in frames) and the means of the object errors.
+thresholds and carried). Per sequence: ``tracked``, ``feasible``, ``not_tracked_reason`` and the
+replay's summary entry of the tracked trajectory (``success``, ``position_error_mean_m``, ...).
+Summary: ``num_tracked``, ``feasible_rate`` (% of the tracked), the means of the object errors
+(``position_error_mean_m``, ``rotation_error_mean_rad``, ``position_error_final_m``) and
+``lost_rate``; the search's CPU time goes to ``reports/timing/track_refine.json``
+(``cpu_seconds``, ``cpu_seconds_per_frame`` and ``cpu_seconds_per_70_frames`` of the replay
+windows: the search is linear in frames).
 
-Off by default (``track.enabled``; ``dexflow params track=on``): on the 24-sequence demo it adds
-minutes to a first ``dvc repro``.
+Off by default (``dexflow params track=on`` turns it on): on the 24-sequence demo it adds about
+5 minutes to ``dvc repro`` on 2 cores.
 
 Deterministic: each sequence's perturbations come from ``np.random.default_rng([seed, crc32 of
 its name])``, so results do not depend on the worker count or order.
