@@ -70,6 +70,7 @@ def test_fingers_short_of_the_box_drop_it_and_the_tracked_targets_carry_it(scene
     )
     rows, after = _score(world, found["targets"], poses, window)
     assert after["success"] and after["carried"] and not after["lost"]
+    assert found["replayed"] == after  # what the stage reports: the replay of its targets
     assert rows["object_position"][-1, 2] > poses[0, 2, 3] + 0.1  # really up in the air
     # q is where the simulated hand was: its base within millimetres of the prior's
     assert np.abs(found["q"][:, :3] - q[:, :3]).max() < 0.01

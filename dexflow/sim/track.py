@@ -132,24 +132,21 @@ class _Rollouts:
             touch[finger[finger >= 0]] = True
         return touch.copy()
 
-    def run(self, start_target: np.ndarray, plan: np.ndarray, frames: np.ndarray) -> tuple:
+    def run(self, start_target: np.ndarray, plan: np.ndarray, frames: np.ndarray) -> float:
         """Roll ``plan (K, dof)`` (targets of ``frames``) out from the current state, starting
-        from ``start_target`` (the targets of the frame before); returns the cost, the hand's
-        states (K, dof) and the object's poses (K, 7)."""
+        from ``start_target`` (the targets of the frame before); returns its cost."""
         world, fps = self.world, self.fps
-        states = np.empty_like(plan)
         objects = np.empty((len(frames), 7))
         missing = np.zeros(len(frames))
         previous = start_target
         for k, t in enumerate(frames):
             world.advance(previous, plan[k], fps)
             previous = plan[k]
-            states[k] = world.hand_state()
             objects[k] = world.object_pose7()
             wanted = self.fingers[t]
             if wanted.any():
                 missing[k] = (wanted & ~self.touching()).sum() / wanted.sum()
-        return self.cost(plan, frames, objects, missing), states, objects
+        return self.cost(plan, frames, objects, missing)
 
     def cost(
         self, plan: np.ndarray, frames: np.ndarray, objects: np.ndarray, missing: np.ndarray
@@ -259,13 +256,14 @@ def _replay_rank(
     fps: float,
     window: tuple[int, int, int],
     s: TrackParams,
-) -> tuple[bool, bool, float]:
-    """The rank of a replay of ``targets`` (lower is better): by the replay's own criteria
-    (success, then carried), then by the mean object pose error."""
+) -> tuple[tuple[bool, bool, float], dict]:
+    """The rank of a replay of ``targets`` (lower is better: by the replay's own criteria,
+    success, then carried, then the mean object pose error) and the replay's summary entry
+    (:func:`~dexflow.sim.replay_criteria.sequence_result`)."""
     rows = world.replay(targets, poses, fps, window)
     r = sequence_result(rows, window[1], poses, fps, world.replay_params)
     error = r["position_error_mean_m"] + s.rotation_weight_m_per_rad * r["rotation_error_mean_rad"]
-    return (not r["success"], not r["carried"], error)
+    return (not r["success"], not r["carried"], error), r
 
 
 def _per_finger(push: np.ndarray, hand) -> np.ndarray:
@@ -308,7 +306,9 @@ def track_sequence(
     Returns:
         ``q`` (T, dof) the simulated hand's states in the window (the prior elsewhere),
         ``targets`` (T, dof), ``object_pose7`` (T, 7) the simulated object in the window (NaN
-        elsewhere) and ``cost`` (T,) of the chosen plan at each frame (NaN outside the window).
+        elsewhere), ``cost`` (T,) of the chosen plan at each frame (NaN outside the window and
+        where the output is a grip schedule) and ``replayed``, the replay's summary entry for
+        ``targets`` (:func:`~dexflow.sim.replay_criteria.sequence_result`).
     """
     s = settings
     prior = np.array(q, dtype=float)
@@ -318,17 +318,18 @@ def track_sequence(
     grid = itertools.product(
         s.schedule_scales, s.schedule_ramps, s.schedule_leads, s.schedule_backoffs
     )
-    best_rank, guided = None, prior
+    best_rank, guided, replayed = None, prior, {}
     for schedule in grid:
         targets = guided_targets(prior, parts, poses, window, schedule)
-        rank = _replay_rank(world, targets, poses, fps, window, s)
+        rank, result = _replay_rank(world, targets, poses, fps, window, s)
         if best_rank is None or rank < best_rank:  # the first of equals: deterministic
-            best_rank, guided = rank, targets
+            best_rank, guided, replayed = rank, targets, result
     if s.mpc:
         out = _search(world, prior, guided, parts[0], poses, fps, window, fingers, s, rng, clamp)
-        if _replay_rank(world, out["targets"], poses, fps, window, s) <= best_rank:
-            return out
-    return _play(world, prior, guided, poses, fps, window)
+        rank, result = _replay_rank(world, out["targets"], poses, fps, window, s)
+        if rank <= best_rank:
+            return {**out, "replayed": result}
+    return {**_play(world, prior, guided, poses, fps, window), "replayed": replayed}
 
 
 def _play(
@@ -407,7 +408,7 @@ def _search(
             candidates = clamp(candidates.reshape(-1, dof)).reshape(candidates.shape)
             for candidate in candidates:
                 world._restore(saved)
-                cost, _, _ = rollouts.run(plan[t], candidate, frames)
+                cost = rollouts.run(plan[t], candidate, frames)
                 if cost < best_cost:
                     best_cost, best = cost, candidate
         plan[frames] = best

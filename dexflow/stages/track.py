@@ -31,7 +31,6 @@ its name])``, so results do not depend on the worker count or order.
 from __future__ import annotations
 
 import dataclasses
-import logging
 import time
 import zlib
 from pathlib import Path
@@ -45,13 +44,11 @@ from dexflow.params import PipelineParams
 from dexflow.pipeline.labelled import labelled_hand, load_labelled
 from dexflow.pipeline.resume import StageOutput
 from dexflow.pipeline.runner import StageSpec
-from dexflow.sim.replay_criteria import replay_window, sequence_result
+from dexflow.sim.replay_criteria import replay_window
 from dexflow.sim.replay_world import replay_world
 from dexflow.sim.track import track_sequence
 
 __all__ = ["STAGE", "run_track"]
-
-logger = logging.getLogger(__name__)
 
 
 def _clamp(hand):
@@ -102,13 +99,11 @@ def run_track(params: PipelineParams, layout: Layout, label: str = "refine") -> 
         frames = (window.start, window.first_contact, window.end)
         rng = np.random.default_rng([int(params.seed), zlib.crc32(path.stem.encode())])
         begin = time.process_time()
-        found_fingers = found.final
         result = track_sequence(
-            world, q, seq.obj_pose, seq.fps, frames, found_fingers, settings, rng, _clamp(hand)
+            world, q, seq.obj_pose, seq.fps, frames, found.final, settings, rng, _clamp(hand)
         )
         seconds = time.process_time() - begin
-        rows = world.replay(result["targets"], seq.obj_pose, seq.fps, frames)
-        scored = sequence_result(rows, window.first_contact, seq.obj_pose, seq.fps, params.replay)
+        scored = result["replayed"]  # the replay of its targets, as stage replay's
         arrays.update(
             targets=result["targets"], object_pose7=result["object_pose7"], cost=result["cost"]
         )
