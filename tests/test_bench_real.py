@@ -33,7 +33,8 @@ def test_subset_links_evenly_spaced_sequences_and_the_rest_of_the_root(tmp_path)
 
 _REPLAYED = {"num_scored": 3, "success_rate": 200 / 3, "spider_success_rate": 100.0,
              "carried_rate": 200 / 3, "lost_rate": 100 / 3, "position_error_mean_m": 0.042,
-             "rotation_error_mean_rad": 0.21}  # fmt: skip
+             "rotation_error_mean_rad": 0.21, "ceiling_success_rate": 100.0,
+             "unstable_rest_rate": 0.0}  # fmt: skip
 _TRACKED = {"num_tracked": 3, "feasible_rate": 200 / 3,
             "timing": {"cpu_seconds_per_70_frames": 41.5}}  # fmt: skip
 
@@ -58,7 +59,10 @@ def test_table_has_one_row_per_hand_and_method_and_marks_missing_values():
                "replay": {"replay@track": _REPLAYED, "track@refine": _TRACKED}}  # fmt: skip
     text_on = _real_table({"shadow": tracked}, "data/real", 0, 2, ["track=on"])
     assert "| shadow | DexFlow + track | " in text_on and "--set track=on" in text_on
-    assert "| shadow | DexFlow + track | 3 | 66.7 | 100.0 | 66.7 | 33 | 4.2 | 0.21 |" in text_on
+    assert (
+        "| shadow | DexFlow + track | 3 | 66.7 | 100.0 | 66.7 | 33 | 4.2 | 0.21 | 100.0 | 0 |"
+        in text_on
+    )
     assert "- shadow, stage track: 3 tracked, feasible 66.7 %; 41.5 CPU s per 70 frames" in text_on
     refine = next(r for r in rows if r.startswith("| shadow | DexFlow + refine"))
     assert refine.split("|")[3].strip() == "7.2" and refine.split("|")[7].strip() == "3.0"

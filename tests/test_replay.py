@@ -1,7 +1,8 @@
 """Stage replay on the three-finger gripper, upside down over a box on a table: a hand that closes
 on the box and lifts it carries it, an open hand leaves it behind, results are deterministic; a
 box the human lets go of is scored up to the release, one that falls in the hand or was not on
-anything before the grasp is not scored."""
+anything before the grasp is not scored; the rigid-grasp ceiling fails a box that turns in the
+hand, and a box recorded resting on an edge is an unstable rest."""
 
 from __future__ import annotations
 
@@ -10,12 +11,14 @@ import dataclasses
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from dexflow.hands import load_hand
 from dexflow.human.model import forward_keypoints
 from dexflow.io.sequence import Sequence
 from dexflow.objects.convex import write_convex_obj
 from dexflow.params import ReplayParams
+from dexflow.sim.replay_criteria import lift_frame, rigid_ceiling
 from dexflow.sim.replay_world import ReplayWorld, replay_errors
 from dexflow.stages.replay import (
     aggregate,
@@ -239,12 +242,13 @@ def test_report_section_tabulates_each_method_and_plots_the_error(tmp_path):
     refine = {"num_replayed": 1, "num_scored": 1, "num_not_scored": 2,
               "num_not_scored_no_support": 1, "num_not_scored_free_fall": 1,
               "success_rate": 100.0, "spider_success_rate": 100.0, "carried_rate": 0.0,
-              "position_error_mean_m": 0.031, "lost_rate": 0.0}  # fmt: skip
+              "position_error_mean_m": 0.031, "lost_rate": 0.0,
+              "ceiling_success_rate": 100.0}  # fmt: skip
     stage = {"replay_refine": refine, "replay_baseline": {}}
     lines = _replay_section(stage, {"refine": root}, tmp_path / "figures", tmp_path / "f")
     rows_md = [line for line in lines if line.startswith("| DexFlow")]
     assert len(rows_md) == 1, rows_md
-    assert "| 1 | 2 (1 no support, 1 free fall) | 100.0 | 100.0 | 0.0 | 3.1 |" in rows_md[0]
+    assert "| 1 | 2 (1 no support, 1 free fall) | 100.0 | 100.0 | 0.0 | 100.0 | 3.1 |" in rows_md[0]
     assert (tmp_path / "figures" / "summary_replay.png").stat().st_size > 0
     assert _replay_section({}, {}, tmp_path / "figures", tmp_path / "f") == []
 
@@ -431,3 +435,50 @@ def test_summary_rates_cover_the_scored_sequences_only(scene):
     for key in ("position_error_mean_m", "held_fraction", "static_error_final_m"):
         assert summary[key] == pytest.approx(np.mean([e[key] for e in scored])), key
     assert np.isnan(aggregate(entries[1:4])["success_rate"])
+
+
+def test_rigid_ceiling_passes_a_box_moving_with_the_hand_not_one_turning_in_it(scene):
+    """Welded to the base from the lift, a box the hand lifts as recorded follows its recording
+    (ceiling success); one whose recording turns 1.5 rad about the vertical while the hand only
+    rises cannot be followed by any grip on that hand path."""
+    _, world, poses, _, closed, rise, _ = scene
+    q = _lift(closed, rise)
+    p = world.replay_params
+    lift = lift_frame(poses, WINDOW)
+    assert lift == HOLD + int(np.argmax(rise[HOLD:] > 0.01))
+    carried = rigid_ceiling(q, poses, FPS, WINDOW, p)
+    assert carried["ceiling_success"] and carried["ceiling_spider_success"]
+    assert carried["ceiling_position_error_mean_m"] < 1e-9
+    assert carried["ceiling_rotation_error_mean_rad"] < 1e-9
+    turning = poses.copy()
+    angle = np.clip(np.arange(len(rise)) - lift, 0, None) * 1.5 / (len(rise) - 1 - lift)
+    turn = Rotation.from_euler("z", angle[:, None]).as_matrix()
+    turning[:, :3, :3] = turn @ poses[:, :3, :3]
+    turned = rigid_ceiling(q, turning, FPS, WINDOW, p)
+    assert not turned["ceiling_success"] and not turned["ceiling_spider_success"]
+    assert turned["ceiling_position_error_mean_m"] < 1e-9  # the box turns about its centre
+    frames = np.arange(len(rise))
+    expected = angle[frames >= 0].mean()  # scored from the first contact, frame 0
+    assert turned["ceiling_rotation_error_mean_rad"] == pytest.approx(expected, rel=1e-6)
+
+
+def test_a_box_resting_on_an_edge_is_an_unstable_rest(scene):
+    """Left alone on its table, the box on its face stays; tilted 35 degrees onto an edge it
+    falls back onto its face (0.61 rad): the replay's entry calls that an unstable rest, and the
+    summary counts it."""
+    _, world, poses, _, closed, rise, _ = scene
+    flat = world.rest_drift(poses[0], FPS, 30)
+    assert flat[0] < 1e-3 and flat[1] < 1e-2
+    tilted = poses.copy()
+    tilted[:, :3, :3] = Rotation.from_euler("x", 35, degrees=True).as_matrix()
+    _, drift_rad = world.rest_drift(tilted[0], FPS, 30)
+    assert drift_rad > world.replay_params.lost_rotation_rad
+    assert drift_rad == pytest.approx(np.radians(35), abs=0.05)
+    q = _lift(closed, rise)
+    touching = np.ones(len(q), bool)
+    entries = [replay_sequence(world, _recording(q, b), q, touching)[1] for b in (poses, tilted)]
+    assert [e["unstable_rest"] for e in entries] == [False, True]
+    assert entries[1]["rest_drift_rad"] == pytest.approx(drift_rad, abs=0.05)
+    summary = aggregate(entries)
+    assert summary["unstable_rest_rate"] == 50.0
+    assert summary["ceiling_success_rate"] == 100.0  # both boxes move with the hand as recorded

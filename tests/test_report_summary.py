@@ -97,7 +97,21 @@ def test_contradictory_signals_get_one_sentence_each(tmp_path, full_inputs):
     assert "Velocity KL: DexFlow 0.27, 9x the baseline's 0.03" in notes
     assert "penetration 6.00 -> 1.50 mm, keypoint error 7.50 -> 11.00 mm" in notes
 
-    metrics, _, _ = full_inputs  # nothing contradicts: no section
+    assert "rigid ceiling" not in notes and "do not rest as recorded" not in notes
+    metrics, _, _ = full_inputs  # real captures: the path and the rest bound the replay
+    refine = json.loads((metrics / "replay_refine.json").read_text())
+    refine |= {"ceiling_success_rate": 14.3, "ceiling_rotation_error_mean_rad": 1.08,
+               "unstable_rest_rate": 64.3, "rest_drift_mean_m": 0.057}  # fmt: skip
+    (metrics / "replay_refine.json").write_text(json.dumps(refine))
+    notes = _section(_summary(tmp_path, full_inputs), "Reading the numbers")
+    assert "DexFlow + refinement: rigid ceiling 14 %." in notes and "1.08 rad" in notes
+    assert "64 % of the objects do not rest as recorded." in notes and "5.7 cm" in notes
+    refine |= {"ceiling_success_rate": 91.7, "unstable_rest_rate": 0.0}
+    (metrics / "replay_refine.json").write_text(json.dumps(refine))
+    notes = _section(_summary(tmp_path, full_inputs), "Reading the numbers")
+    assert "rigid ceiling" not in notes and "do not rest as recorded" not in notes
+
+    # nothing contradicts: no section
     for m in ("retarget", "refine"):
         (metrics / f"replay_{m}.json").unlink()
     aggregates = json.loads((metrics / "metrics.json").read_text())

@@ -2,9 +2,10 @@
 
 Stage replay (:mod:`dexflow.stages.replay`, whose docs give the rules and their reasons) and
 stage track (:mod:`dexflow.stages.track`, which optimises against them) share these: the window
-(:func:`replay_window`: lead frames, first contact, release, "no support", "free fall") and a
-replayed sequence's summary entry (:func:`sequence_result`: SPIDER's success, carried, lost,
-time held).
+(:func:`replay_window`: lead frames, first contact, release, "no support", "free fall"), the
+recorded lift (:func:`lift_frame`), a replayed sequence's summary entry (:func:`sequence_result`:
+SPIDER's success, carried, lost, time held) and the ceiling a trajectory's base path sets on it
+(:func:`rigid_ceiling`).
 """
 
 from __future__ import annotations
@@ -12,12 +13,20 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from dexflow.human.keypoints import wrist_frame
 from dexflow.io.sequence import Sequence
 from dexflow.params import ReplayParams
 
-__all__ = ["ReplayWindow", "grasp_window", "replay_window", "sequence_result"]
+__all__ = [
+    "ReplayWindow",
+    "grasp_window",
+    "lift_frame",
+    "replay_window",
+    "rigid_ceiling",
+    "sequence_result",
+]
 
 
 def grasp_window(final: np.ndarray, lead_frames: int) -> tuple[int, int, int] | None:
@@ -183,4 +192,79 @@ def sequence_result(
         "recorded_travel_m": float(static.max()),
         "base_error_mean_m": float(rows["base_error_m"].mean()),
         "joint_error_mean_rad": float(rows["joint_error_rad"].mean()),
+    }
+
+
+def lift_frame(poses: np.ndarray, window: tuple[int, int, int]) -> int:
+    """The **lift**: the first frame after the first contact where the recorded object is 1 cm
+    from where it was then (the window's end if it never is).
+
+    Args:
+        poses: (T, 4, 4) the recorded object poses.
+        window: ``(start, first_contact, end)``.
+    """
+    _, first, end = window
+    position = np.asarray(poses)[:, :3, 3]
+    moved = np.linalg.norm(position[first : end + 1] - position[first], axis=1) > 0.01
+    return first + (int(np.argmax(moved)) if moved.any() else end - first)
+
+
+def _base_poses(q: np.ndarray) -> np.ndarray:
+    """(T, 4, 4) the floating base's transforms of ``q[:, :6]`` (slides, then intrinsic x-y-z
+    Euler angles: :func:`dexflow.hands.robot.base_transform`)."""
+    out = np.tile(np.eye(4), (len(q), 1, 1))
+    out[:, :3, :3] = Rotation.from_euler("XYZ", q[:, 3:6]).as_matrix()
+    out[:, :3, 3] = q[:, :3]
+    return out
+
+
+def rigid_ceiling(
+    q: np.ndarray, poses: np.ndarray, fps: float, window: tuple[int, int, int], p: ReplayParams
+) -> dict:
+    """The **rigid-grasp ceiling** of a trajectory: how the replay would score an object that
+    never slips, welded to the hand's base from the recorded lift on.
+
+    Before the lift (:func:`lift_frame`) the object stays at its recorded pose; from there it
+    moves rigidly with the base of ``q``: ``B(t) B(lift)^-1 P(lift)``. Scored against the
+    recorded poses by :func:`sequence_result`'s criteria, no physics. No grip, however good,
+    makes the object follow its recording better than the hand's own path allows, so where the
+    ceiling fails the path is what fails: on DexYCB captures the recorded object turns in the
+    human hand (and symmetric objects' annotations spin about their axis), and a hand that
+    follows the human's wrist cannot reproduce that rotation.
+
+    Args:
+        q: (T, dof) the trajectory (its base ``q[:, :6]``).
+        poses: (T, 4, 4) the recorded object poses.
+        fps: Frames per second.
+        window: ``(start, first_contact, end)`` of the replay.
+        p: The replay's parameters (its thresholds).
+
+    Returns:
+        ``ceiling_success``, ``ceiling_spider_success``, ``ceiling_position_error_mean_m`` and
+        ``ceiling_rotation_error_mean_rad``.
+    """
+    start, first, end = window
+    poses = np.asarray(poses, dtype=float)
+    frames = np.arange(start, end + 1)
+    lift = lift_frame(poses, window)
+    base = _base_poses(np.asarray(q, dtype=float)[frames])
+    carried = poses[frames].copy()
+    after = frames >= lift
+    attached = np.linalg.inv(base[lift - start]) @ poses[lift]
+    carried[after] = base[after] @ attached
+    rotation = Rotation.from_matrix(carried[:, :3, :3])
+    recorded = Rotation.from_matrix(poses[frames, :3, :3])
+    rows = {
+        "frame": frames,
+        "position_error_m": np.linalg.norm(carried[:, :3, 3] - poses[frames, :3, 3], axis=1),
+        "rotation_error_rad": (recorded.inv() * rotation).magnitude(),
+        "base_error_m": np.zeros(len(frames)),
+        "joint_error_rad": np.zeros(len(frames)),
+    }
+    r = sequence_result(rows, first, poses, fps, p)
+    return {
+        "ceiling_success": r["success"],
+        "ceiling_spider_success": r["spider_success"],
+        "ceiling_position_error_mean_m": r["position_error_mean_m"],
+        "ceiling_rotation_error_mean_rad": r["rotation_error_mean_rad"],
     }

@@ -285,6 +285,26 @@ class ReplayWorld(MujocoGraspWorld):
             d.ctrl[self._base_pos_act] = path[k, :6]
             mujoco.mj_step(m, d)
 
+    def rest_drift(self, pose: np.ndarray, fps: float, frames: int) -> tuple[float, float]:
+        """How far the object moves and turns (m, rad) left alone for ``frames`` recorded
+        frames at ``pose`` (4, 4) on its table, the hand 10 m above it.
+
+        A recorded resting pose the replay's table cannot hold (the object rests on an edge, so
+        the annotation or the table's frame is tilted) topples or rocks here on its own.
+        """
+        self._require_object("rest_drift")
+        m, d = self.model, self.data
+        m.opt.timestep = 1.0 / (fps * self.replay_params.substeps)
+        self.place_table(pose)
+        away = self.hand.zero()[0].cpu().numpy().astype(np.float64)
+        away[:3] = pose[:3, 3] + [0.0, 0.0, 10.0]
+        self._reset(away, pose)
+        for _ in range(frames * self.replay_params.substeps):
+            mujoco.mj_step(m, d)
+        now = self.object_pose7()
+        position, rotation = replay_errors(now[None, :3], now[None, 3:], pose[None])
+        return float(position[0]), float(rotation[0])
+
     def hand_state(self) -> np.ndarray:
         """(dof,) the hand's configuration now: base joints, then finger joints."""
         d = self.data

@@ -68,10 +68,10 @@ import itertools
 import numpy as np
 
 from dexflow.params import TrackParams
-from dexflow.sim.replay_criteria import sequence_result
+from dexflow.sim.replay_criteria import lift_frame, sequence_result
 from dexflow.sim.replay_world import ReplayWorld, replay_errors
 
-__all__ = ["grip_schedule", "guided_targets", "lift_frame", "track_sequence"]
+__all__ = ["grip_schedule", "guided_targets", "track_sequence"]
 
 _BASE_ROT_LEVER_M = 0.1  # m/rad: the prior cost of a base rotation (palm to fingertip)
 _FINGER_LEVER_M = 0.05  # m/rad: the prior cost of a finger joint's rotation (a phalanx)
@@ -177,15 +177,6 @@ def _noise(
     ends = rng.standard_normal((count, 2, dof)) * spread
     ramp = np.linspace(0.0, 1.0, length)[None, :, None] if length > 1 else np.ones((1, 1, 1))
     return ends[:, :1] + ramp * (ends[:, 1:] - ends[:, :1])
-
-
-def lift_frame(poses: np.ndarray, window: tuple[int, int, int]) -> int:
-    """The **lift**: the first frame after the first contact where the recorded object is 1 cm
-    from where it was then (the window's end if it never is)."""
-    _, first, end = window
-    position = poses[:, :3, 3]
-    moved = np.linalg.norm(position[first : end + 1] - position[first], axis=1) > 0.01
-    return first + (int(np.argmax(moved)) if moved.any() else end - first)
 
 
 def grip_schedule(

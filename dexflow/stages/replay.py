@@ -77,10 +77,29 @@ contact also ``start`` (first frame replayed), ``first_contact``, ``end``, ``las
 height before the first contact, m) and ``free_fall_frame`` (first frame of a free fall in the
 window; -1: none), :class:`ReplayWindow`.
 
+Two diagnostics per scored sequence say what bounds its success whatever the fingers do:
+
+- **Rigid ceiling** (``ceiling_success``, ``ceiling_spider_success``,
+  ``ceiling_position_error_mean_m``, ``ceiling_rotation_error_mean_rad``;
+  :func:`dexflow.sim.replay_criteria.rigid_ceiling`): the object welded to the trajectory's base
+  from the recorded **lift** (the first frame it is 1 cm from where it was at the first contact),
+  scored by the same criteria, no physics. No grip carries the object closer to its recording
+  than that hand path allows. On the demo 83-92 %; on 28 real DexYCB captures 7-14 % (both hands,
+  every method), with a mean rotation error of 1.0-1.1 rad and a mean position error of 1-6 cm:
+  the recorded object turns relative to the human hand (symmetric objects' annotations also spin
+  about their axis), and a hand that follows the human's wrist cannot turn it so.
+- **Unstable rest** (``unstable_rest``, ``rest_drift_m``, ``rest_drift_rad``;
+  :meth:`ReplayWorld.rest_drift`): the object left alone on the replay's table at its recorded
+  pose at the first contact, for the frames from ``start`` to the lift, is *lost* (beyond
+  ``lost_position_m`` or ``lost_rotation_rad``). It rests on an edge: its annotation, or the
+  table's frame, is tilted, and it topples whatever the hand does. Demo 0 %; the 28 real captures
+  64 % (Shadow's windows) and 71 % (Allegro's), a mean drift of 5.7-7.7 cm.
+
 The summary's rates and means (``success_rate``, ``spider_success_rate``, ``carried_rate``,
 ``lost_rate`` in %, ``position_error_mean_m``, ``rotation_error_mean_rad``,
 ``position_error_final_m``, ``held_fraction``, ``static_error_*``, ``base_error_mean_m``,
-``joint_error_mean_rad``) are over the scored sequences only. Counts: ``num_scored`` (=
+``joint_error_mean_rad``, ``ceiling_success_rate``, ``ceiling_rotation_error_mean_rad``,
+``unstable_rest_rate``, ``rest_drift_mean_m``) are over the scored sequences only. Counts: ``num_scored`` (=
 ``num_replayed``: only scored sequences are replayed), ``num_not_scored`` and, per reason,
 ``num_not_scored_no_contact``, ``num_not_scored_no_support``, ``num_not_scored_free_fall``;
 ``num_ended_at_release``: scored sequences whose window ends at a release before their last
@@ -112,7 +131,9 @@ from dexflow.pipeline.runner import StageSpec
 from dexflow.sim.replay_criteria import (
     ReplayWindow,
     grasp_window,
+    lift_frame,
     replay_window,
+    rigid_ceiling,
     sequence_result,
 )
 from dexflow.sim.replay_world import ReplayWorld, replay_world
@@ -182,7 +203,12 @@ def replay_sequence(
         squeezed = world.squeezed(q, seq.obj_pose, touching)
         rows = world.replay(q, seq.obj_pose, seq.fps, frames, squeezed)
     result = sequence_result(rows, window.first_contact, seq.obj_pose, seq.fps, p)
-    return rows, {**result, **window.entry()}
+    ceiling = rigid_ceiling(q, seq.obj_pose, seq.fps, frames, p)
+    rest = lift_frame(seq.obj_pose, frames) - window.start
+    drift_m, drift_rad = world.rest_drift(seq.obj_pose[window.first_contact], seq.fps, rest)
+    unstable = drift_m > p.lost_position_m or drift_rad > p.lost_rotation_rad
+    diagnostics = {"rest_drift_m": drift_m, "rest_drift_rad": drift_rad, "unstable_rest": unstable}
+    return rows, {**result, **ceiling, **diagnostics, **window.entry()}
 
 
 def aggregate(entries: list[dict]) -> dict:
@@ -212,6 +238,10 @@ def aggregate(entries: list[dict]) -> dict:
         "static_error_final_m": mean("static_error_final_m"),
         "base_error_mean_m": mean("base_error_mean_m"),
         "joint_error_mean_rad": mean("joint_error_mean_rad"),
+        "ceiling_success_rate": 100 * mean("ceiling_success"),
+        "ceiling_rotation_error_mean_rad": mean("ceiling_rotation_error_mean_rad"),
+        "unstable_rest_rate": 100 * mean("unstable_rest"),
+        "rest_drift_mean_m": mean("rest_drift_m"),
     }
 
 

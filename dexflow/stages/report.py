@@ -491,6 +491,37 @@ def _spider_left_behind(stage: dict) -> dict | None:
     return {"label": label, "spider": spider, "lost": lost, "static_m": static}
 
 
+CEILING_NOTE_BELOW = 50.0  # % of sequences: a rigid ceiling lower than this gets a note
+
+
+def _replay_limits_notes(replay: dict) -> list[str]:
+    """Notes on what bounds the replay's success regardless of the grip (refine's replay): a
+    rigid ceiling below :data:`CEILING_NOTE_BELOW` %, and objects that do not rest as recorded;
+    none where neither holds."""
+    notes = []
+    ceiling, rotation = (
+        replay.get("ceiling_success_rate"),
+        replay.get("ceiling_rotation_error_mean_rad"),
+    )
+    if ceiling is not None and rotation is not None and ceiling < CEILING_NOTE_BELOW:
+        notes.append(
+            f"- **Replay, {METHOD_LABELS['refine']}: rigid ceiling {ceiling:.0f} %.** An object "
+            "welded to the hand from the recorded lift would follow its recording in only "
+            f"{ceiling:.0f} % of the sequences (mean rotation error {rotation:.2f} rad): the "
+            "recorded object turns relative to the hand (or its annotation spins), so no grip "
+            "on this hand path can succeed more often."
+        )
+    unstable = replay.get("unstable_rest_rate")
+    if unstable:
+        drift = _scaled(replay.get("rest_drift_mean_m"), 100)
+        notes.append(
+            f"- **{unstable:.0f} % of the objects do not rest as recorded.** Left alone on the "
+            "replay's table at their recorded pose, they are lost before the recorded lift "
+            f"(mean drift {cell(drift, 1)} cm): the object topples whatever the hand does."
+        )
+    return notes
+
+
 def _readings(metrics: dict, stage: dict, limits: dict | None) -> list[str]:
     """One sentence for each pair of signals that look contradictory in this run (only those
     that do)."""
@@ -513,6 +544,7 @@ def _readings(metrics: dict, stage: dict, limits: dict | None) -> list[str]:
             f"{limit}:{left} so it passes objects the hand dropped or never lifted; *success* "
             "also requires the object carried to where the recording ends."
         )
+    notes += _replay_limits_notes(stage.get("replay_refine") or {})
     kl = {m: metrics.get(f"{m}.velocity_kl") for m in ("baseline", "retarget")}
     acc = {m: metrics.get(f"{m}.rms_acc") for m in ("baseline", "retarget")}
     if all(v is not None for v in (*kl.values(), *acc.values())) and (
@@ -587,11 +619,13 @@ def _replay_section(
         ("success (%)", lambda r: r.get("success_rate"), 1),
         ("SPIDER (%)", lambda r: r.get("spider_success_rate"), 1),
         ("carried (%)", lambda r: r.get("carried_rate"), 1),
+        ("rigid ceiling (%)", lambda r: r.get("ceiling_success_rate"), 1),
         ("position error (cm)", lambda r: _scaled(r.get("position_error_mean_m"), 100), 1),
         ("lost (%)", lambda r: r.get("lost_rate"), 0),
         ("rotation error (rad)", lambda r: r.get("rotation_error_mean_rad"), 2),
         ("held (% of grasp)", lambda r: _scaled(r.get("held_fraction"), 100), 0),
         ("left behind (cm)", lambda r: _scaled(r.get("static_error_mean_m"), 100), 1),
+        ("unstable rest (%)", lambda r: r.get("unstable_rest_rate"), 0),
     ]
     shown = MAX_COLUMNS - 1
     rows_md, rows_csv = [], []
@@ -611,8 +645,8 @@ def _replay_section(
     if csv_path is not None:
         _write_csv(csv_path, ["method", *(h for h, _, _ in columns)], rows_csv)
         lines += [
-            "- " + _csv_link(csv_path) + " Also: rotation error, held, left behind (cm, "
-            "where an object that never moves ends up).",
+            "- " + _csv_link(csv_path) + " Also: lost, rotation error, held, left behind "
+            "(cm, where an object that never moves ends up), unstable rest.",
         ]
     lines += [
         "- *Success* = *SPIDER* (mean error small) and *carried* (final error small); "
@@ -1383,6 +1417,11 @@ def _definitions(stage: dict, limits: dict | None, methods=CORE_METHODS) -> list
         "- *Left behind*: the mean error of an object that never moves; where it is below the "
         "threshold, SPIDER's criterion alone does not tell carrying from leaving the object "
         "where it was.",
+        "- *Rigid ceiling*: the success an object welded to the hand's base from the recorded "
+        "lift would have (no physics): no grip does better along that base path.",
+        "- *Unstable rest*: the share of sequences whose object, left alone on the replay's "
+        "table at its recorded pose, is *lost* before the recorded lift (it rests on an edge: "
+        "the annotation or the table's frame is tilted).",
         *(
             [
                 f"- *{METHOD_LABELS['track']}*: stage track's trajectories, searched in the "

@@ -73,7 +73,8 @@ def _replay_lines(results: dict[str, dict], names: dict[str, str]) -> list[str]:
                     f"| {hand} | {label} | {s['num_scored']} | {s['success_rate']:.1f} | "
                     f"{s['spider_success_rate']:.1f} | {s['carried_rate']:.1f} | "
                     f"{s['lost_rate']:.0f} | {100 * s['position_error_mean_m']:.1f} | "
-                    f"{s['rotation_error_mean_rad']:.2f} |"
+                    f"{s['rotation_error_mean_rad']:.2f} | {s['ceiling_success_rate']:.1f} | "
+                    f"{s['unstable_rest_rate']:.0f} |"
                 )
     if not rows:
         return []
@@ -81,9 +82,13 @@ def _replay_lines(results: dict[str, dict], names: dict[str, str]) -> list[str]:
         "Replay (the object free under gravity; `dexflow/stages/replay.py`):",
         "",
         "| hand | method | scored | success % | SPIDER % | carried % | lost % | object error cm "
-        "| rad |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| rad | rigid ceiling % | unstable rest % |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
         *rows,
+        "",
+        "- *Rigid ceiling*: the success an object welded to the hand's base from the recorded "
+        "lift would have; *unstable rest*: objects that, left alone at their recorded pose on "
+        "the replay's table, are lost before the lift (`dexflow/stages/replay.py`).",
     ]
     for hand, r in results.items():
         track = r.get("replay", {}).get("track@refine")
