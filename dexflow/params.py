@@ -241,6 +241,12 @@ class DemoConfig:
         tip_inside_probability: Chance that pressing fingertips are annotated inside the object.
         tip_depth_mean_m: Mean depth of the deepest fingertip keypoint (exponential), metres.
         tip_depth_max_m: Largest such depth, metres.
+        rest_tilt_probability: Chance that a sequence's whole scene is recorded tilted, so that
+            its object rests on an edge on a level table (as in DexYCB's captures).
+        rest_tilt_deg: Range of that tilt, degrees.
+        spin_probability: Chance that a stand-in symmetric about an axis (the cans, the bowl) is
+            annotated spinning about it while held (DexYCB's annotations of such objects do).
+        spin_rad: Range of that spin by the end of the hold, radians.
         hand_scale: Range of hand sizes (1 = average adult).
         contact_tolerance_m: Skin-to-surface distance that counts as ground-truth contact.
         sdf_spacing_m: Grid spacing of the signed distance used for synthesis.
@@ -296,6 +302,10 @@ class DemoConfig:
             if getattr(self, key) < 0:
                 raise ConfigError(f"demo.{key}: expected >= 0, found {getattr(self, key)!r}")
 
+    rest_tilt_probability: float
+    rest_tilt_deg: tuple[float, float]
+    spin_probability: float
+    spin_rad: tuple[float, float]
     hand_scale: tuple[float, float]
     contact_tolerance_m: float
     sdf_spacing_m: float
@@ -304,10 +314,11 @@ class DemoConfig:
 def _validate_demo(d: DemoConfig) -> None:
     _check_numbers(d, "demo")
     for key in ("release_probability", "inside_fraction", "hover_fraction",
-                "tracking_loss_probability"):  # fmt: skip
+                "tracking_loss_probability", "rest_tilt_probability",
+                "spin_probability"):  # fmt: skip
         _require(getattr(d, key) <= 1, f"demo.{key}", "within [0, 1]", getattr(d, key))
     for key in ("inside_depth_m", "hover_gap_m", "dropout_length", "tracking_loss_length",
-                "tracking_loss_distance_m"):  # fmt: skip
+                "tracking_loss_distance_m", "rest_tilt_deg", "spin_rad"):  # fmt: skip
         _require_pair(getattr(d, key), f"demo.{key}")
     _require_pair(d.hand_scale, "demo.hand_scale", positive=True)
     _require(0 < d.sdf_spacing_m <= 0.02, "demo.sdf_spacing_m", "within (0, 0.02] metres",

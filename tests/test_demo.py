@@ -206,3 +206,36 @@ def test_the_default_demo_has_every_grasp_type(tmp_path):
     )
     names = sorted(p.stem for p in (tmp_path / "sequences").glob("*.npz"))
     assert names == ["024_bowl__00_pinch", "024_bowl__01_lateral"]
+
+
+def _can(tmp_path, **quirks):
+    cfg = DemoConfig(
+        seed=6, objects=["005_tomato_soup_can"], sequences_per_object=1, **NO_TEMPLATE, **quirks
+    )
+    generate_demo(cfg, tmp_path)
+    return load_sequence(next((tmp_path / "sequences").glob("*.npz")), data_root=tmp_path)
+
+
+def test_tilted_rests_and_spinning_annotations_like_dexycb(tmp_path):
+    """With both quirks on, the can's recorded scene is tilted 15-40 degrees (its axis off the
+    vertical at rest, so it stands on its rim's edge) and its annotation turns about its axis
+    while held, by up to spin_rad, its surface where it was: the hand's distances to it are
+    those of the same sequence without the quirks, which is that sequence turned."""
+    plain = _can(tmp_path / "plain", rest_tilt_probability=0.0, spin_probability=0.0)
+    odd = _can(tmp_path / "odd", rest_tilt_probability=1.0, spin_probability=1.0)
+    upright = plain.obj_pose[0, :3, 2] @ [0.0, 0.0, 1.0]
+    tilt = np.degrees(np.arccos(np.clip(odd.obj_pose[0, :3, 2] @ [0.0, 0.0, 1.0], -1, 1)))
+    assert upright == pytest.approx(1.0) and 15.0 - 1e-6 <= tilt <= 40.0 + 1e-6
+    scene = odd.obj_pose[0] @ np.linalg.inv(plain.obj_pose[0])  # the tilt (no spin at rest)
+    turned = np.linalg.inv(plain.obj_pose) @ np.linalg.inv(scene) @ odd.obj_pose  # the spin
+    axis = turned[:, :3, 2]  # the can's axis does not move: the spin is about it
+    np.testing.assert_allclose(axis, np.tile([0.0, 0.0, 1.0], (len(axis), 1)), atol=1e-9)
+    spin = np.abs(np.arctan2(turned[:, 1, 0], turned[:, 0, 0]))
+    assert spin[0] < 1e-9 and 1.0 - 1e-6 <= spin.max() <= 2.5 + 1e-6
+    mesh = tmp_path / "odd" / odd.obj_mesh
+    before = _skin_distance(plain, plain.keypoints, mesh)
+    after = _skin_distance(odd, odd.keypoints, mesh)
+    ok = np.isfinite(before) & np.isfinite(after)
+    near = ok & (np.abs(before) < 0.02)  # inside the SDF's grid (3 cm of padding)
+    assert near.sum() > 100
+    np.testing.assert_allclose(after[near], before[near], atol=1e-3)

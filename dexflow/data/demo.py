@@ -20,7 +20,14 @@ made realistic the way real captures are:
 - unannotated frames at the MANO-like template: most sequences START with a run of frames
   where the hand is a fixed flat default hand ~0.7 m away, identical every frame, and some END
   with one (``template_*``; ``valid = True`` as in an uncleaned capture, ``gt_tracking_lost``
-  and ``gt_template`` mark them).
+  and ``gt_template`` mark them);
+- a tilted rest: the whole recorded scene (object and hand) turned ``rest_tilt_deg`` about a
+  horizontal axis through the resting object (``rest_tilt_probability``), so that on a level
+  table the object rests on an edge and topples left alone, as most of DexYCB's do;
+- an annotation that spins: a stand-in symmetric about an axis (the cans, the bowl:
+  ``Standin.symmetry_axis``) turns about it by up to ``spin_rad`` while held
+  (``spin_probability``), its surface where it was, as DexYCB's annotations of such objects
+  do. No hand following the human's can turn the object so (stage replay's rigid ceiling).
 
 Everything is a deterministic function of the configuration: the same seed gives byte-identical
 files.
@@ -37,7 +44,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from dexflow.data.grasps import GRASP_TYPES, Grasp, synthesize_grasp
 from dexflow.data.ycb_standins import STANDINS, build_standin
-from dexflow.geometry import world_to_object
+from dexflow.geometry import transform_points, world_to_object
 from dexflow.human.keypoints import FINGER_KEYPOINTS, FINGERS
 from dexflow.human.model import HandShape, finger_capsules, forward_keypoints
 from dexflow.io.atomic import save_json
@@ -103,6 +110,7 @@ def _make_sequence(
     rng: np.random.Generator,
     cfg: DemoConfig,
     shape: HandShape,
+    symmetry_axis: tuple[float, float, float] | None = None,
 ) -> tuple[Sequence, dict]:
     release = bool(rng.random() < cfg.release_probability)
     num_frames, n_reach, n_close, n_release = _plan_phases(rng, cfg, release)
@@ -235,6 +243,14 @@ def _make_sequence(
     dropped &= ~unannotated
     keypoints[dropped] = np.nan
 
+    # The object's annotation as real captures have it (a stream of its own).
+    quirks = np.random.default_rng(extra.integers(2**63))
+    spin = _annotation_spin(quirks, cfg, symmetry_axis, ramp, t_hold)
+    obj_pose = obj_pose @ spin
+    tilt = _rest_tilt(quirks, cfg, rest)
+    obj_pose = tilt @ obj_pose
+    keypoints, clean_kp = transform_points(tilt, keypoints), transform_points(tilt, clean_kp)
+
     seq = Sequence(
         keypoints=keypoints,
         obj_pose=obj_pose,
@@ -265,8 +281,44 @@ def _make_sequence(
         "tracking_lost_frames": int(lost.sum()),
         "template_frames": int(unannotated.sum()),
         "hold_penetration_mm": float(1000 * np.linalg.norm(shift, axis=-1).max()),
+        "rest_tilt_deg": float(np.degrees(Rotation.from_matrix(tilt[:3, :3]).magnitude())),
+        "spin_rad": float(Rotation.from_matrix(spin[-1, :3, :3]).magnitude()),
     }
     return seq, info
+
+
+def _rest_tilt(rng: np.random.Generator, cfg: DemoConfig, rest: np.ndarray) -> np.ndarray:
+    """(4, 4) the turn of the whole recorded scene about a horizontal axis through the resting
+    object's origin (``rest``), ``rest_tilt_deg`` with ``rest_tilt_probability``, else the
+    identity."""
+    if rng.random() >= cfg.rest_tilt_probability:
+        return np.eye(4)
+    heading = rng.uniform(0.0, 2 * np.pi)
+    angle = np.radians(rng.uniform(*cfg.rest_tilt_deg))
+    axis = np.array([np.cos(heading), np.sin(heading), 0.0])
+    return _transform(axis * angle, np.zeros(3), rest[:3, 3])
+
+
+def _annotation_spin(
+    rng: np.random.Generator,
+    cfg: DemoConfig,
+    symmetry_axis: tuple[float, float, float] | None,
+    ramp: np.ndarray,
+    t_hold: int,
+) -> np.ndarray:
+    """(T, 4, 4) object-frame turns about ``symmetry_axis``: 0 until the hold (``t_hold``), then
+    growing with the grip's closure ``ramp`` (T,) from the hold on, to ``spin_rad`` by the end
+    (kept once put down); identities without an axis or outside ``spin_probability``."""
+    out = np.repeat(np.eye(4)[None], len(ramp), axis=0)
+    if symmetry_axis is None or rng.random() >= cfg.spin_probability:
+        return out
+    total = rng.uniform(*cfg.spin_rad) * rng.choice([-1.0, 1.0])
+    held = np.zeros(len(ramp))
+    held[t_hold:] = np.cumsum(ramp[t_hold:] > 0)
+    share = held / max(held.max(), 1.0)
+    axis = np.asarray(symmetry_axis, dtype=float)
+    out[:, :3, :3] = Rotation.from_rotvec(np.outer(total * share, axis)).as_matrix()
+    return out
 
 
 def _hold_penetration(
@@ -411,7 +463,8 @@ def generate_object(name: str, cfg: DemoConfig, out_dir: str | Path) -> list[dic
         shape = HandShape(scale=float(rng.uniform(*cfg.hand_scale)))
         grasp = _grasp_with_fallback(sdf, grasp_types, k, rng, shape)
         seq_name = f"{name}__{k:02d}_{grasp.template.name}"
-        seq, info = _make_sequence(seq_name, grasp, sdf, rng, cfg, shape)
+        symmetry = STANDINS[name].symmetry_axis
+        seq, info = _make_sequence(seq_name, grasp, sdf, rng, cfg, shape, symmetry)
         save_sequence(StageDir(out_dir).sequence(seq_name), seq, data_root=out_dir)
         info["grasp_score"] = grasp.score
         entries.append(info)

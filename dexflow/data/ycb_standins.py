@@ -151,6 +151,9 @@ class Standin:
     build: Callable[[], trimesh.Trimesh]
     grasps: tuple[str, ...]
     watertight: bool = True
+    symmetry_axis: tuple[float, float, float] | None = (
+        None  # shape symmetric about it (object frame)
+    )
 
 
 STANDINS: dict[str, Standin] = {
@@ -162,6 +165,7 @@ STANDINS: dict[str, Standin] = {
             _master_chef_can,
             ("power", "tripod", "lateral"),
             watertight=False,
+            symmetry_axis=(0.0, 0.0, 1.0),
         ),
         Standin(
             "003_cracker_box", (213.5, 164.0, 71.7), _cracker_box, ("power", "pinch", "lateral")
@@ -172,6 +176,7 @@ STANDINS: dict[str, Standin] = {
             (102.0, 67.9, 67.8),
             _tomato_soup_can,
             ("power", "tripod", "pinch"),
+            symmetry_axis=(0.0, 0.0, 1.0),
         ),
         Standin(
             "006_mustard_bottle",
@@ -200,6 +205,7 @@ STANDINS: dict[str, Standin] = {
             # default demo (2 sequences per object) then has every grasp type
             ("pinch", "lateral", "tripod"),
             watertight=False,
+            symmetry_axis=(0.0, 0.0, 1.0),
         ),
         Standin(
             "025_mug", (117.0, 93.1, 81.4), _mug, ("power", "pinch", "tripod"), watertight=False
