@@ -34,6 +34,7 @@ from pathlib import Path
 from dexflow.errors import ArtifactError, ConfigError
 
 __all__ = [
+    "CORE_TRAJECTORIES",
     "TRAJECTORIES",
     "Layout",
     "NoSequencesError",
@@ -48,6 +49,7 @@ __all__ = [
 # refinement, and after tracking (stage track, when on: params.yaml's ``methods`` lists those a
 # project has; the labels of simulate, replay, metrics and reports).
 TRAJECTORIES = ("baseline", "retarget", "refine", "track")
+CORE_TRAJECTORIES = TRAJECTORIES[:3]  # those every project has (track only with track=on)
 _RETARGET_METHOD = {"baseline": "position", "retarget": "dexflow"}
 
 

@@ -88,7 +88,7 @@ from dexflow.io.artifacts import (
     write_metric_frames,
 )
 from dexflow.io.atomic import atomic_path
-from dexflow.io.layout import TRAJECTORIES, Layout
+from dexflow.io.layout import CORE_TRAJECTORIES, TRAJECTORIES, Layout
 from dexflow.io.sequence import load_sequence
 from dexflow.measures import (
     capped_contact_distance,
@@ -117,7 +117,7 @@ __all__ = [
     "trajectory_metrics",
 ]
 
-METHODS = TRAJECTORIES[:3]  # the methods every project has; track's with track=on
+METHODS = CORE_TRAJECTORIES  # the methods every project has; track's with track=on
 
 
 # ------------------------------------------------------------------------ hand-object measures

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from dexflow import stats
-from dexflow.io.layout import Layout
+from dexflow.io.layout import CORE_TRAJECTORIES, Layout
 from dexflow.params import PipelineParams
 from dexflow.pipeline import provenance
 from dexflow.pipeline.runner import StageSpec
@@ -58,7 +58,7 @@ METHOD_LABELS = {
 }
 # The methods every summary shows (a stage that did not run: —); the others of METHOD_LABELS
 # (track, stage track's with ``track=on``) only where the inputs hold them (:func:`_methods`).
-CORE_METHODS = ("baseline", "retarget", "refine")
+CORE_METHODS = CORE_TRAJECTORIES
 SHORT_LABELS = {
     "baseline": "baseline",
     "retarget": "DexFlow",
