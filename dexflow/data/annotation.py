@@ -20,7 +20,17 @@ if TYPE_CHECKING:
     from dexflow.objects.sdf import SignedDistanceGrid
     from dexflow.params import DemoConfig
 
-__all__ = ["annotation_spin", "hold_penetration", "rest_tilt", "tip_penetration"]
+__all__ = ["annotation_spin", "hold_penetration", "rest_tilt", "rigid_motion", "tip_penetration"]
+
+
+def rigid_motion(rotvec, translation, centre: np.ndarray | None = None) -> np.ndarray:
+    """(4, 4) rotation by ``rotvec`` about ``centre`` (default the origin) followed by
+    ``translation``."""
+    centre = np.zeros(3) if centre is None else np.asarray(centre, dtype=float)
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    out[:3, 3] = centre - out[:3, :3] @ centre + translation
+    return out
 
 
 def rest_tilt(rng: np.random.Generator, cfg: DemoConfig, rest: np.ndarray) -> np.ndarray:
@@ -32,10 +42,7 @@ def rest_tilt(rng: np.random.Generator, cfg: DemoConfig, rest: np.ndarray) -> np
     heading = rng.uniform(0.0, 2 * np.pi)
     angle = np.radians(rng.uniform(*cfg.rest_tilt_deg))
     axis = np.array([np.cos(heading), np.sin(heading), 0.0])
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(axis * angle).as_matrix()
-    out[:3, 3] = rest[:3, 3] - out[:3, :3] @ rest[:3, 3]
-    return out
+    return rigid_motion(axis * angle, np.zeros(3), rest[:3, 3])
 
 
 def annotation_spin(

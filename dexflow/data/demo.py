@@ -46,6 +46,7 @@ from dexflow.data.annotation import (
     annotation_spin,
     hold_penetration,
     rest_tilt,
+    rigid_motion,
     tip_penetration,
 )
 from dexflow.data.grasps import GRASP_TYPES, Grasp, synthesize_grasp
@@ -82,15 +83,6 @@ def _interp_poses(a: np.ndarray, b: np.ndarray, weights: np.ndarray) -> np.ndarr
     return out
 
 
-def _transform(rotvec, translation, centre: np.ndarray | None = None) -> np.ndarray:
-    """Rotation by ``rotvec`` about ``centre`` (default the origin) followed by ``translation``."""
-    centre = np.zeros(3) if centre is None else centre
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    out[:3, 3] = centre - out[:3, :3] @ centre + translation
-    return out
-
-
 def _bursts(rng, num_frames, count, length, lo=0) -> np.ndarray:
     mask = np.zeros(num_frames, dtype=bool)
     for _ in range(count):
@@ -123,13 +115,13 @@ def _make_sequence(
     t_close, t_hold, t_release = n_reach, n_reach + n_close, num_frames - n_release
 
     # Where the object rests in the world, and how it moves once held.
-    rest = _transform(
+    rest = rigid_motion(
         [0.0, 0.0, rng.uniform(-np.pi, np.pi)],
         [rng.uniform(0.3, 0.5), rng.uniform(-0.15, 0.15), rng.uniform(0.05, 0.15)],
     )
     centre = rest[:3, 3]
     axis = rng.normal(size=3)
-    lift = _transform(
+    lift = rigid_motion(
         axis / np.linalg.norm(axis) * rng.uniform(0.2, 0.6),
         [rng.uniform(-0.12, 0.12), rng.uniform(-0.12, 0.12), rng.uniform(0.1, 0.2)],
         centre,
@@ -137,7 +129,7 @@ def _make_sequence(
     motion = np.repeat(np.eye(4)[None], num_frames, axis=0)
     if release:
         n_up = n_hold * 2 // 3
-        place = _transform(
+        place = rigid_motion(
             [0.0, 0.0, rng.uniform(-0.5, 0.5)],
             [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), 0.0],
             centre,
@@ -153,7 +145,7 @@ def _make_sequence(
     grasp_wrist = rest @ grasp.wrist_pose
     approach_world = rest[:3, :3] @ grasp.approach
     start = (
-        _transform(
+        rigid_motion(
             rng.normal(size=3) * 0.3,
             -approach_world * rng.uniform(0.2, 0.3) + [0.0, 0.0, rng.uniform(0.05, 0.15)],
             grasp_wrist[:3, 3],
@@ -164,7 +156,7 @@ def _make_sequence(
     wrist[:t_close] = _interp_poses(start, grasp_wrist, _min_jerk(n_reach))
     if release:
         n_open = n_release // 2
-        retreat = _transform([0.0, 0.0, 0.0], -approach_world * 0.2) @ wrist[t_release]
+        retreat = rigid_motion([0.0, 0.0, 0.0], -approach_world * 0.2) @ wrist[t_release]
         wrist[t_release + n_open :] = _interp_poses(
             wrist[t_release], retreat, _min_jerk(n_release - n_open)
         )

@@ -13,8 +13,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import torch
 from scipy.spatial.transform import Rotation
 
+from dexflow.hands.robot import base_transform
 from dexflow.human.keypoints import wrist_frame
 from dexflow.io.sequence import Sequence
 from dexflow.params import ReplayParams
@@ -209,15 +211,6 @@ def lift_frame(poses: np.ndarray, window: tuple[int, int, int]) -> int:
     return first + (int(np.argmax(moved)) if moved.any() else end - first)
 
 
-def _base_poses(q: np.ndarray) -> np.ndarray:
-    """(T, 4, 4) the floating base's transforms of ``q[:, :6]`` (slides, then intrinsic x-y-z
-    Euler angles: :func:`dexflow.hands.robot.base_transform`)."""
-    out = np.tile(np.eye(4), (len(q), 1, 1))
-    out[:, :3, :3] = Rotation.from_euler("XYZ", q[:, 3:6]).as_matrix()
-    out[:, :3, 3] = q[:, :3]
-    return out
-
-
 def rigid_ceiling(
     q: np.ndarray, poses: np.ndarray, fps: float, window: tuple[int, int, int], p: ReplayParams
 ) -> dict:
@@ -247,7 +240,7 @@ def rigid_ceiling(
     poses = np.asarray(poses, dtype=float)
     frames = np.arange(start, end + 1)
     lift = lift_frame(poses, window)
-    base = _base_poses(np.asarray(q, dtype=float)[frames])
+    base = base_transform(torch.as_tensor(np.asarray(q, dtype=float)[frames, :6])).numpy()
     carried = poses[frames].copy()
     after = frames >= lift
     attached = np.linalg.inv(base[lift - start]) @ poses[lift]
