@@ -18,8 +18,8 @@ from dexflow.human.model import forward_keypoints
 from dexflow.io.sequence import Sequence
 from dexflow.objects.convex import write_convex_obj
 from dexflow.params import ReplayParams
-from dexflow.sim.replay_criteria import lift_frame, rigid_ceiling
-from dexflow.sim.replay_world import ReplayWorld, replay_errors
+from dexflow.sim.replay_criteria import lift_frame, replay_errors, rigid_ceiling
+from dexflow.sim.replay_world import ReplayWorld
 from dexflow.stages.replay import (
     aggregate,
     grasp_window,

@@ -25,6 +25,7 @@ __all__ = [
     "ReplayWindow",
     "grasp_window",
     "lift_frame",
+    "replay_errors",
     "replay_window",
     "rigid_ceiling",
     "sequence_result",
@@ -197,6 +198,25 @@ def sequence_result(
     }
 
 
+def replay_errors(
+    position: np.ndarray, quat: np.ndarray, poses: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Position (m) and rotation (rad) errors of simulated object poses against recorded ones.
+
+    Args:
+        position: (N, 3) simulated positions.
+        quat: (N, 4) simulated orientations (w, x, y, z).
+        poses: (N, 4, 4) recorded poses.
+
+    Returns:
+        ``||p - p_rec||`` (N,) and the angle of ``R_rec^T R`` (N,).
+    """
+    rotation = Rotation.from_quat(np.asarray(quat)[:, [1, 2, 3, 0]])
+    recorded = Rotation.from_matrix(poses[:, :3, :3])
+    angle = (recorded.inv() * rotation).magnitude()
+    return np.linalg.norm(position - poses[:, :3, 3], axis=1), angle
+
+
 def lift_frame(poses: np.ndarray, window: tuple[int, int, int]) -> int:
     """The **lift**: the first frame after the first contact where the recorded object is 1 cm
     from where it was then (the window's end if it never is).
@@ -245,12 +265,12 @@ def rigid_ceiling(
     after = frames >= lift
     attached = np.linalg.inv(base[lift - start]) @ poses[lift]
     carried[after] = base[after] @ attached
-    rotation = Rotation.from_matrix(carried[:, :3, :3])
-    recorded = Rotation.from_matrix(poses[frames, :3, :3])
+    quat = Rotation.from_matrix(carried[:, :3, :3]).as_quat(scalar_first=True)
+    position, rotation = replay_errors(carried[:, :3, 3], quat, poses[frames])
     rows = {
         "frame": frames,
-        "position_error_m": np.linalg.norm(carried[:, :3, 3] - poses[frames, :3, 3], axis=1),
-        "rotation_error_rad": (recorded.inv() * rotation).magnitude(),
+        "position_error_m": position,
+        "rotation_error_rad": rotation,
         "base_error_m": np.zeros(len(frames)),
         "joint_error_rad": np.zeros(len(frames)),
     }

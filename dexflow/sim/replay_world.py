@@ -37,8 +37,9 @@ from scipy.spatial.transform import Rotation
 from dexflow.hands.robot import RobotHand
 from dexflow.params import MujocoParams, ReplayParams, SimulateParams
 from dexflow.sim.mujoco_world import MOUNT, MujocoGraspWorld, add_object, hand_spec
+from dexflow.sim.replay_criteria import replay_errors
 
-__all__ = ["ReplayWorld", "replay_errors", "replay_world"]
+__all__ = ["ReplayWorld", "replay_world"]
 
 _TABLE = "dexflow_table"
 _TABLE_HALF_SIZE_M = (0.5, 0.5, 0.02)
@@ -51,25 +52,6 @@ def _pose7(pose: np.ndarray) -> np.ndarray:
     """MuJoCo free-joint position (x, y, z, qw, qx, qy, qz) of a (4, 4) pose."""
     xyzw = Rotation.from_matrix(pose[:3, :3]).as_quat()
     return np.concatenate([pose[:3, 3], xyzw[[3, 0, 1, 2]]])
-
-
-def replay_errors(
-    position: np.ndarray, quat: np.ndarray, poses: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Position (m) and rotation (rad) errors of simulated object poses against recorded ones.
-
-    Args:
-        position: (N, 3) simulated positions.
-        quat: (N, 4) simulated orientations (w, x, y, z).
-        poses: (N, 4, 4) recorded poses.
-
-    Returns:
-        ``||p - p_rec||`` (N,) and the angle of ``R_rec^T R`` (N,).
-    """
-    rotation = Rotation.from_quat(np.asarray(quat)[:, [1, 2, 3, 0]])
-    recorded = Rotation.from_matrix(poses[:, :3, :3])
-    angle = (recorded.inv() * rotation).magnitude()
-    return np.linalg.norm(position - poses[:, :3, 3], axis=1), angle
 
 
 def _simulate_params(params: ReplayParams, squeeze_reach_m: float | None) -> SimulateParams:

@@ -69,8 +69,8 @@ import itertools
 import numpy as np
 
 from dexflow.params import TrackParams
-from dexflow.sim.replay_criteria import lift_frame, sequence_result
-from dexflow.sim.replay_world import ReplayWorld, replay_errors
+from dexflow.sim.replay_criteria import lift_frame, replay_errors, sequence_result
+from dexflow.sim.replay_world import ReplayWorld
 
 __all__ = ["grip_schedule", "guided_targets", "track_sequence"]
 
