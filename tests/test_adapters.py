@@ -367,10 +367,11 @@ def test_convert_command_exit_status(tmp_path, capsys):
     )
 
 
-def _session(folder, models, captures, camera_to_world, left=()):
+def _session(folder, models, captures, camera_to_world, left=(), turn_rad=0.4):
     """A session in the HO-3D layout: ``captures`` objects resting on one table (z = 0 in the
-    world), each lifted and tilted after 4 frames, seen by one camera (``camera_to_world``);
-    ``left`` captures are left hands. Returns per capture the object axis that is up at rest."""
+    world), each lifted and tilted (by ``turn_rad``) after 4 frames, seen by one camera
+    (``camera_to_world``); ``left`` captures are left hands. Returns per capture the object
+    axis that is up at rest."""
     rng = np.random.default_rng(7)
     objects = {"025_mug": (0.06, 0.04, 0.08), "011_banana": (0.18, 0.04, 0.03)}
     for name, extents in objects.items():
@@ -385,7 +386,7 @@ def _session(folder, models, captures, camera_to_world, left=()):
         ups.append(rest.inv().apply([0.0, 0.0, 1.0]))
         corners = trimesh.creation.box(extents=objects[name]).vertices
         start = [*rng.uniform(-0.15, 0.15, 2), -rest.apply(corners)[:, 2].min()]
-        tilt = Rotation.from_rotvec(ramp * 0.4 * np.array([[1.0, 0.5, 0.0]]))
+        tilt = Rotation.from_rotvec(ramp * turn_rad * np.array([[1.0, 0.5, 0.0]]))
         poses = np.repeat(np.eye(4)[None], n, axis=0)
         poses[:, :3, :3] = (tilt * rest).as_matrix()
         poses[:, :3, 3] = start + ramp * [0.02, 0.0, 0.15]
@@ -442,6 +443,9 @@ def test_ho3d_session_is_written_in_its_tables_frame(tmp_path):
     entry = table[str(session)]
     assert entry["applied"] and entry["captures"] == 9 and entry["dip_share"] == 0, entry
     assert entry["start_height_mad_m"] < 1e-3
+    rotations = report["object_rotation"]["sessions"][str(session)]  # tilts too little to tell
+    assert rotations["applied"] == rotations["found"] == "+x+y+z R +x+y+z", rotations
+    assert rotations["reason"] == "0 carries turn by 10 deg or more, too few (at least 3)"
     up_in_camera = camera[:3, :3].T @ [0.0, 0.0, 1.0]
     assert _degrees(entry["up"], up_in_camera) < 1.0
     for c, up in enumerate(ups):
@@ -487,6 +491,76 @@ def test_ho3d_camera_frame_is_kept_for_a_small_session_or_when_asked(tmp_path, c
     entry = json.loads((tmp_path / "c" / "convert.json").read_text())["table_frames"]
     assert entry[str(large)]["applied"]  # the same 8 captures, without --camera-frame
     assert "kept the camera's frame" in capsys.readouterr().out
+
+
+def _restore(folder, convention):
+    """Rewrite a session's ``objRot`` so that ``convention`` reads back the rotations it had:
+    ``R_stored = op(Lᵀ R_object Bᵀ)`` (``op`` its own inverse)."""
+    for frame in sorted(folder.glob("*/meta/*.pkl")):
+        with open(frame, "rb") as handle:
+            record = pickle.load(handle)
+        inner = convention.left.T @ Rotation.from_rotvec(record["objRot"]).as_matrix()
+        inner = inner @ convention.right.T
+        stored = inner.T if convention.transposed else inner
+        record["objRot"] = Rotation.from_matrix(stored).as_rotvec()
+        with open(frame, "wb") as handle:
+            pickle.dump(record, handle)
+
+
+def _world_hulls(out, name):
+    """(T, 8, 3) the written box's corners in the written world, each frame's sorted."""
+    seq = load_sequence(out / "sequences" / name)
+    corners = trimesh.load(out / seq.obj_mesh, force="mesh").vertices
+    world = corners @ seq.obj_pose[:, :3, :3].mT + seq.obj_pose[:, None, :3, 3]
+    return np.sort(np.round(world, 9).view([("", world.dtype)] * 3), axis=1).view(world.dtype)
+
+
+def test_object_rotations_written_another_way_are_found_by_hand_and_table(tmp_path, caplog):
+    """A session whose objRot is written as a DexYCB export to the HO-3D layout wrote it (the
+    transpose, with axes swapped on both sides): the default check keeps it as stored and warns
+    with the convention that fits; ``auto`` and that convention give back the true objects, as
+    a correctly written session converts; a correct session passes the check silently; a
+    malformed convention is refused before anything is read."""
+    from dexflow.data.rotation_convention import RotationConvention
+    from dexflow.errors import ConfigError
+
+    camera = _camera_over_the_table()
+    for name in ("025_mug", "011_banana"):
+        (tmp_path / "models" / name).mkdir(parents=True)
+    right, wrong = tmp_path / "src" / "right", tmp_path / "src" / "wrong"
+    _session(right, tmp_path / "models", 9, camera, left=(1, 4), turn_rad=2.0)  # 16° median
+    _session(wrong, tmp_path / "models", 9, camera, left=(1, 4), turn_rad=2.0)
+    convention = RotationConvention.parse("-z+y+x R^T +z-y+x")
+    _restore(wrong, convention)
+    options = ConvertOptions(models=str(tmp_path / "models"))
+    with caplog.at_level("WARNING", logger="dexflow.data.adapters"):
+        convert("ho3d", right, tmp_path / "truth", options)
+        assert not [r for r in caplog.records if "object rotations" in r.getMessage()]
+        report = convert("ho3d", wrong, tmp_path / "checked", options)
+    (warning,) = [r.getMessage() for r in caplog.records if "object rotations" in r.getMessage()]
+    assert str(wrong) in warning and "--object-rotation auto" in warning, warning
+    truth = json.loads((tmp_path / "truth" / "convert.json").read_text())["object_rotation"]
+    assert truth["sessions"][str(right)]["found"] == "+x+y+z R +x+y+z"
+    entry = report["object_rotation"]["sessions"][str(wrong)]
+    assert entry["applied"] == "+x+y+z R +x+y+z" and entry["carried_sequences"] == 9, entry
+    found = RotationConvention.parse(entry["found"])
+    assert found.transposed and np.array_equal(found.left, convention.left), entry
+    assert entry["carry_spread_deg"]["found"] < 1.0 < entry["carry_spread_deg"]["as-stored"]
+    assert entry["start_spread_m"]["found"] < 1e-3 < entry["start_spread_m"]["as-stored"]
+    given = replace(options, object_rotation=str(convention))
+    convert("ho3d", wrong, tmp_path / "auto", replace(options, object_rotation="auto"))
+    convert("ho3d", wrong, tmp_path / "given", given)
+    for c in range(9):
+        name = f"ho3d_{right.name}_capture_{c:02d}.npz"
+        other = name.replace(right.name, wrong.name)
+        truth_hulls = _world_hulls(tmp_path / "truth", name)
+        for out in ("auto", "given"):  # the box's own symmetries may pick another B: same box
+            np.testing.assert_allclose(_world_hulls(tmp_path / out, other), truth_hulls, atol=1e-6)
+        assert np.abs(_world_hulls(tmp_path / "checked", other) - truth_hulls).max() > 0.01
+    for spec, words in (("+z+y R +x+y+z", "images of x, y and z"), ("+x+x+z R +x+y+z", "not a "
+                        "rotation"), ("sideways", "expected 'as-stored'")):  # fmt: skip
+        with pytest.raises(ConfigError, match=words):
+            convert("ho3d", wrong, tmp_path / "x", replace(options, object_rotation=spec))
 
 
 def _fake_mano(path):

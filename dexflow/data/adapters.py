@@ -60,6 +60,7 @@ from dexflow.data.formats import (
     need,
 )
 from dexflow.data.readers import ADAPTERS
+from dexflow.data.rotation_convention import STANDARD, RotationConvention, check_convention
 from dexflow.data.table import DIP_M, MAX_START_MAD_M, MIN_CAPTURES, fit_table, table_frame
 from dexflow.errors import DexflowError
 from dexflow.geometry import transform_points, world_to_object
@@ -195,11 +196,12 @@ def convert(
         The report, also written to ``DST/convert.json``: per sequence its ``status`` (ok,
         skipped, failed) with its counts or its ``reason``/``error``, the totals, and per
         session of camera-frame data (HO-3D: a folder of sequences) its ``table_frames``
-        entry (:func:`_convert_session`).
+        entry and its ``object_rotation`` ``sessions`` entry (:func:`_convert_session`).
 
     Raises:
         DatasetLayoutError: Unknown adapter, a missing source folder, a source that does not
             have the adapter's layout at all, or data that needs a missing option (``--mano``).
+        ConfigError: ``options.object_rotation`` is not a mode or a convention.
     """
     if adapter not in ADAPTERS:
         raise DatasetLayoutError(f"unknown adapter '{adapter}'; known: {sorted(ADAPTERS)}")
@@ -210,9 +212,11 @@ def convert(
     dst = Path(dst)
     for folder in sources:
         need(folder, "source dataset folder")
+    given = _given_convention(options.object_rotation)
     StageDir(dst).sequences_dir.mkdir(parents=True, exist_ok=True)
     sequences: dict[str, dict] = {}
     tables: dict[str, dict] = {}
+    rotations: dict[str, dict] = {}
     for folder in sources:
         sessions: dict[Path, list[SourceSequence]] = {}
         for source in ADAPTERS[adapter](folder, options):
@@ -222,9 +226,11 @@ def convert(
             raws = _read(source, sequences)
             for raw in raws:
                 if _admit(raw, folder, options, sequences):
-                    _write(raw, source, dst, options, sequences)
+                    _write(_rotated(raw, given or STANDARD), source, dst, options, sequences)
         for session, group in sessions.items():
-            _convert_session(session, group, folder, dst, options, sequences, tables)
+            _convert_session(
+                session, group, folder, dst, options, sequences, (tables, rotations), given
+            )
     statuses = [entry["status"] for entry in sequences.values()]
     report = {
         "adapter": adapter,
@@ -235,6 +241,7 @@ def convert(
         "num_failed": statuses.count("failed"),
         "sequences": sequences,
         "table_frames": tables,
+        "object_rotation": {"option": options.object_rotation, "sessions": rotations},
     }
     save_json(dst / "convert.json", report)
     return report
@@ -327,25 +334,33 @@ def _convert_session(
     dst: Path,
     options: ConvertOptions,
     sequences: dict[str, dict],
-    tables: dict[str, dict],
+    records: tuple[dict[str, dict], dict[str, dict]],
+    given: RotationConvention | None,
 ) -> None:
-    """Write one session's sequences (one camera, one table) in their table's frame.
+    """Write one session's sequences (one camera, one table) in their table's frame, their
+    object rotations read by ``given`` or, without it, checked (:func:`_session_rotations`).
 
     The table is fitted from all of them (:func:`dexflow.data.table.fit_table`) in the camera's
     frame, before left hands are mirrored: mirroring (x -> -x) keeps z, so a mirrored sequence
     is z up too. The camera's frame is kept, with a warning, when fewer than
     :data:`~dexflow.data.table.MIN_CAPTURES` sequences can be fitted or their start heights
     spread more than :data:`~dexflow.data.table.MAX_START_MAD_M`; and with
-    ``options.camera_frame``. ``tables[str(session)]`` records the fit: ``up`` (in the camera's
-    frame), ``table_height_m`` (along it), ``start_height_mad_m``, ``dip_share`` (over
-    :data:`~dexflow.data.table.DIP_M`), ``captures``, ``applied``, and ``reason`` if not.
+    ``options.camera_frame``. ``records[0][str(session)]`` (``table_frames``) records the fit:
+    ``up`` (in the camera's frame), ``table_height_m`` (along it), ``start_height_mad_m``,
+    ``dip_share`` (over :data:`~dexflow.data.table.DIP_M`), ``captures``, ``applied``, and
+    ``reason`` if not; ``records[1][str(session)]`` the object rotations' check.
     """
+    tables, rotations = records
     read = [(source, _read(source, sequences)) for source in group]
     admitted = [
         (source, [raw for raw in raws if _admit(raw, folder, options, sequences)])
         for source, raws in read
     ]
-    hulls, poses = _resting_poses([raw for _, raws in admitted for raw in raws], options)
+    raws = [raw for _, session_raws in admitted for raw in session_raws]
+    hulls, poses = _resting_poses(raws, options)
+    convention = given or _session_rotations(session, raws, hulls, poses, options, rotations)
+    poses = [convention.poses(pose) for pose in poses]
+    admitted = [(source, [_rotated(raw, convention) for raw in raws]) for source, raws in admitted]
     transform = None
     if poses:
         fit = fit_table(hulls, poses)
@@ -384,6 +399,59 @@ def _convert_session(
     for source, raws in admitted:
         for raw in raws:
             _write(_moved(raw, transform), source, dst, options, sequences)
+
+
+def _given_convention(option: str) -> RotationConvention | None:
+    """The convention ``--object-rotation`` names; None for ``check`` and ``auto``."""
+    return None if option in ("check", "auto") else RotationConvention.parse(option)
+
+
+def _rotated(raw: RawSequence, convention: RotationConvention) -> RawSequence:
+    """``raw`` with its object rotations read by ``convention``."""
+    if convention.is_standard:
+        return raw
+    return replace(raw, obj_pose=convention.poses(raw.obj_pose))
+
+
+def _session_rotations(
+    session: Path,
+    raws: list[RawSequence],
+    hulls: list[np.ndarray],
+    poses: list[np.ndarray],
+    options: ConvertOptions,
+    rotations: dict[str, dict],
+) -> RotationConvention:
+    """Check a session's stored object rotations against its hands and its table
+    (:func:`~dexflow.data.rotation_convention.check_convention`), record the check in
+    ``rotations[str(session)]``, warn when another convention fits clearly better, and return
+    the convention to read them by: that one with ``auto``, else the standard one."""
+    check = check_convention(
+        [raw.keypoints for raw in raws],
+        [raw.obj_pose for raw in raws],
+        hulls,
+        [pose[0] for pose in poses],
+    )
+    apply = options.object_rotation == "auto"
+    rotations[str(session)] = {
+        **check.record(),
+        "applied": str(check.found if apply else STANDARD),
+    }
+    if check.found.is_standard:
+        log.info("%s: object rotations read as stored (%s)", session, check.summary())
+        return STANDARD
+    if apply:
+        log.info("%s: object rotations read as '%s' (%s)", session, check.found, check.summary())
+        return check.found
+    log.warning(
+        "%s: the stored object rotations fit the hands and the table clearly better read as "
+        "'%s' (%s); kept as stored: pass --object-rotation auto (or '%s') to read them so, "
+        "--object-rotation as-stored to skip this check",
+        session,
+        check.found,
+        check.summary(),
+        check.found,
+    )
+    return STANDARD
 
 
 def _moved(raw: RawSequence, transform: np.ndarray | None) -> RawSequence:

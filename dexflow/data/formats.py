@@ -75,6 +75,12 @@ class ConvertOptions:
         camera_frame: HO-3D: keep the camera's frame instead of writing each folder's captures
             in the frame of their table (z up), fitted from where the objects rest
             (:mod:`dexflow.data.table`).
+        object_rotation: How the stored object rotations are read
+            (:mod:`dexflow.data.rotation_convention`): ``check`` (read as stored, and each
+            camera-frame session is checked against its hands and its table: a warning names
+            the convention the data fits clearly better), ``auto`` (read by that convention),
+            ``as-stored`` (no check), or a convention such as ``"-z+y+x R^T +z-y+x"`` (every
+            sequence, every adapter).
     """
 
     models: str | None = None
@@ -85,6 +91,7 @@ class ConvertOptions:
     jump_threshold_m: float = 0.08
     strict: bool = False
     camera_frame: bool = False
+    object_rotation: str = "check"
 
 
 @dataclass

@@ -25,7 +25,15 @@ from scipy.spatial.transform import Rotation
 
 from dexflow.geometry import transform_points
 
-__all__ = ["DIP_M", "MAX_START_MAD_M", "MIN_CAPTURES", "TableFit", "fit_table", "table_frame"]
+__all__ = [
+    "DIP_M",
+    "MAX_START_MAD_M",
+    "MIN_CAPTURES",
+    "TableFit",
+    "fit_table",
+    "start_spread",
+    "table_frame",
+]
 
 DIP_M = 0.02  # a capture whose object goes this far below its start height "dips"
 MIN_CAPTURES = 8  # fewer captures fit no table reliably
@@ -115,11 +123,34 @@ def _local_search(heights: _Heights, start: np.ndarray, step: float) -> tuple[np
     return direction(result.x), float(result.fun)
 
 
+def _best_up(heights: _Heights) -> tuple[np.ndarray, float]:
+    """The up vector minimising ``heights.cost`` and its cost: a coarse search over
+    :data:`_COARSE` directions of the whole sphere, then Nelder-Mead from the three best and
+    from the camera's ``-y``, and once more from the best result."""
+    coarse = _sphere(_COARSE)
+    costs = np.array([heights.cost(u) for u in coarse])
+    starts = [*coarse[np.argsort(costs)[:3]], _CAMERA_UP]
+    found = [_local_search(heights, s, 0.1) for s in starts]
+    up, _ = min(found, key=lambda f: f[1])
+    return _local_search(heights, up, 0.01)
+
+
+def start_spread(hulls: Sequence[np.ndarray], rests: np.ndarray) -> float:
+    """How far a session's resting objects are from lying on one plane: the trimmed mean
+    deviation of their lowest hull points' heights from the median height, minimised over up
+    vectors (the first term of the module docstring's ``f``, metres).
+
+    Args:
+        hulls: Per capture, (V_i, 3) convex-hull vertices of its object, in the object's frame.
+        rests: (C, 4, 4) each capture's object-to-camera pose at rest.
+    """
+    return _best_up(_Heights(hulls, [pose[None] for pose in np.asarray(rests)]))[1]
+
+
 def fit_table(hulls: Sequence[np.ndarray], poses: Sequence[np.ndarray]) -> TableFit:
     """Fit the table's up vector to a session's captures (the module docstring's ``f``).
 
-    A coarse search over :data:`_COARSE` directions of the whole sphere, then Nelder-Mead from
-    the three best and from the camera's ``-y``, and once more from the best result.
+    The search: :func:`_best_up`.
 
     Args:
         hulls: Per capture, (V_i, 3) convex-hull vertices of its object, in the object's frame.
@@ -135,12 +166,7 @@ def fit_table(hulls: Sequence[np.ndarray], poses: Sequence[np.ndarray]) -> Table
     if not len(poses) or any(len(p) == 0 for p in poses):
         raise ValueError("fit_table needs at least one capture, each with a frame")
     heights = _Heights(hulls, poses)
-    coarse = _sphere(_COARSE)
-    costs = np.array([heights.cost(u) for u in coarse])
-    starts = [*coarse[np.argsort(costs)[:3]], _CAMERA_UP]
-    found = [_local_search(heights, s, 0.1) for s in starts]
-    up, _ = min(found, key=lambda f: f[1])
-    up, _ = _local_search(heights, up, 0.01)
+    up, _ = _best_up(heights)
     start, lowest = heights(up)
     return TableFit(
         up=up,
