@@ -242,10 +242,12 @@ class DemoConfig:
         tip_depth_mean_m: Mean depth of the deepest fingertip keypoint (exponential), metres.
         tip_depth_max_m: Largest such depth, metres.
         rest_tilt_probability: Chance that a sequence's whole scene is recorded tilted, so that
-            its object rests on an edge on a level table (as in DexYCB's captures).
+            its object rests on an edge on a level table (as object rotations read by the
+            wrong convention look; 0 by default: read right, real captures rest).
         rest_tilt_deg: Range of that tilt, degrees.
         spin_probability: Chance that a stand-in symmetric about an axis (the cans, the bowl) is
-            annotated spinning about it while held (DexYCB's annotations of such objects do).
+            annotated spinning about it while held (as a wrong rotation convention shows
+            them; 0 by default).
         spin_rad: Range of that spin by the end of the hold, radians.
         hand_scale: Range of hand sizes (1 = average adult).
         contact_tolerance_m: Skin-to-surface distance that counts as ground-truth contact.

@@ -1,4 +1,5 @@
-"""How the demo's recordings differ from its clean synthesis where real annotations do.
+"""How the demo's recordings differ from its clean synthesis where real annotations do (and,
+switched on, where object rotations read by the wrong convention would).
 
 Functions of a sequence's random generator and :class:`~dexflow.params.DemoConfig`, used by
 :mod:`dexflow.data.demo` (whose docstring lists every artefact): the annotated hand too deep in

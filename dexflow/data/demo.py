@@ -23,11 +23,14 @@ made realistic the way real captures are:
   and ``gt_template`` mark them);
 - a tilted rest: the whole recorded scene (object and hand) turned ``rest_tilt_deg`` about a
   horizontal axis through the resting object (``rest_tilt_probability``), so that on a level
-  table the object rests on an edge and topples left alone, as most of DexYCB's do;
+  table the object rests on an edge and topples left alone, as most of a DexYCB export's do
+  when its rotations are read by the wrong convention (off by default: :mod:`dexflow.data.
+  rotation_convention` finds the right one, and real captures so read rest);
 - an annotation that spins: a stand-in symmetric about an axis (the cans, the bowl:
   ``Standin.symmetry_axis``) turns about it by up to ``spin_rad`` while held
-  (``spin_probability``), its surface where it was, as DexYCB's annotations of such objects
-  do. No hand following the human's can turn the object so (stage replay's rigid ceiling).
+  (``spin_probability``), its surface where it was, as that misread export's annotations of
+  such objects do (off by default). No hand following the human's can turn the object so
+  (stage replay's rigid ceiling).
 
 Everything is a deterministic function of the configuration: the same seed gives byte-identical
 files.
