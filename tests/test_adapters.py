@@ -563,6 +563,29 @@ def test_object_rotations_written_another_way_are_found_by_hand_and_table(tmp_pa
             convert("ho3d", wrong, tmp_path / "x", replace(options, object_rotation=spec))
 
 
+def test_a_given_object_rotation_convention_reads_every_adapters_poses(tmp_path):
+    """``--object-rotation '<L> R^T <B>'`` applies to data without sessions too (here the
+    generic adapter): each written rotation is ``L Rᵀ B`` of the stored one, translations kept;
+    ``check`` leaves such data as stored (no session to check) and records nothing."""
+    from dexflow.data.rotation_convention import RotationConvention
+
+    gen = tmp_path / "gen"
+    _box(gen / "box.obj")
+    poses = _poses()
+    np.savez(gen / "a.npz", keypoints=_hand(), obj_pose=poses, obj_mesh="box.obj", fps=30.0)
+    spec = "+y-x+z R^T -x+y-z"
+    convert("generic", gen, tmp_path / "given", ConvertOptions(object_rotation=spec))
+    report = convert("generic", gen, tmp_path / "checked")
+    assert report["object_rotation"] == {"option": "check", "sessions": {}}
+    given = load_sequence(tmp_path / "given" / "sequences" / "generic_a.npz").obj_pose
+    stored = load_sequence(tmp_path / "checked" / "sequences" / "generic_a.npz").obj_pose
+    convention = RotationConvention.parse(spec)
+    expected = convention.left @ poses[:, :3, :3].mT @ convention.right
+    np.testing.assert_allclose(given[:, :3, :3], expected, atol=1e-12)
+    np.testing.assert_allclose(stored[:, :3, :3], poses[:, :3, :3], atol=1e-12)
+    np.testing.assert_allclose(given[:, :3, 3], poses[:, :3, 3], atol=1e-12)
+
+
 def _fake_mano(path):
     rng = np.random.default_rng(0)
     n_verts = 778
