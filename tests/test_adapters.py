@@ -490,7 +490,9 @@ def test_ho3d_camera_frame_is_kept_for_a_small_session_or_when_asked(tmp_path, c
         np.testing.assert_allclose(seq.obj_pose[0, :3, 3], first["objTrans"], atol=1e-12)
     entry = json.loads((tmp_path / "c" / "convert.json").read_text())["table_frames"]
     assert entry[str(large)]["applied"]  # the same 8 captures, without --camera-frame
-    assert "kept the camera's frame" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "kept the camera's frame" in out
+    assert f"rotations {large}: read as '+x+y+z R +x+y+z'\n" in out
 
 
 def _restore(folder, convention):

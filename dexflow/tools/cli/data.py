@@ -188,6 +188,16 @@ def _cmd_convert(args: argparse.Namespace) -> int:
             print(f"table {folder}: written in the table's frame, z up ({fit})")
         else:
             print(f"table {folder}: kept the camera's frame: {table['reason']} ({fit})")
+    for folder, check in report["object_rotation"]["sessions"].items():
+        better = check["found"] != check["applied"]
+        print(
+            f"rotations {folder}: read as '{check['applied']}'"
+            + (
+                f"; fits clearly better: '{check['found']}' (--object-rotation auto)"
+                if better
+                else ""
+            )
+        )
     print(
         f"{report['num_ok']}/{report['num_sequences']} sequences written to {args.dst}"
         f" ({report['num_skipped']} skipped, {report['num_failed']} failed)"
