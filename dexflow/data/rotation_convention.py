@@ -309,10 +309,10 @@ def check_convention(
         # op and L by the carry spread (ties keep the standard, then the identity: index 0)
         op = min((False, True), key=lambda o: (round(np.nanmin(by_op[o][0]), 1), o))
         left_index = int(np.argmin(np.round(by_op[op][0], 1)))
-        base = RotationConvention(CUBE[left_index], op)
-        right_starts = [starts(RotationConvention(base.left, op, right)) for right in CUBE]
+        left = CUBE[left_index]
+        right_starts = [starts(RotationConvention(left, op, right)) for right in CUBE]
         right_index = int(np.argmin(np.round(right_starts, 4)))  # ties: 0.1 mm, identity first
-        candidate = RotationConvention(base.left, op, CUBE[right_index])
+        candidate = RotationConvention(left, op, CUBE[right_index])
         candidate_scores = (by_op[op][0][left_index], right_starts[right_index])
         if not candidate.is_standard and all(
             c <= CLEARLY_BETTER * s for c, s in zip(candidate_scores, standard, strict=True)
