@@ -185,18 +185,18 @@ def _angle_deg(rotations: np.ndarray) -> np.ndarray:
 
 
 def carry_spread_deg(
-    keypoints: Sequence[np.ndarray], poses: Sequence[np.ndarray], transposed: bool
+    keypoints: Sequence[np.ndarray], poses: Sequence[np.ndarray]
 ) -> tuple[np.ndarray, int]:
-    """The session's carry spread (the module docstring's fact 1) for every ``L`` of
-    :data:`CUBE`, with ``op`` the transpose if ``transposed``.
+    """The session's carry spread (the module docstring's fact 1) for every ``op`` and every
+    ``L`` of :data:`CUBE`.
 
     Args:
         keypoints: Per sequence, (T, 21, 3) in dexflow's order, NaN where not tracked.
         poses: Per sequence, (T, 4, 4) stored object poses, NaN where not annotated.
-        transposed: Whether ``op`` is the transpose.
 
     Returns:
-        ``(spread (24,) degrees, NaN if no carry turns, turning carries)``.
+        ``(spread (2, 24) degrees, row 0 as stored and row 1 transposed, NaN if no carry turns;
+        turning carries)``.
     """
     spreads = []
     for kp, pose in zip(keypoints, poses, strict=True):
@@ -208,14 +208,14 @@ def carry_spread_deg(
         if np.median(_angle_deg(middle_hand.T @ hand)) < TURNING_DEG:
             continue
         stored = pose[frames, :3, :3]
-        inner = np.swapaxes(stored, -1, -2) if transposed else stored
-        # relative rotation Hᵀ L op(R) for every L: (24, K, 3, 3); B cancels in the spread
-        relative = np.swapaxes(hand, -1, -2)[None] @ CUBE[:, None] @ inner[None]
-        middle = relative[:, len(frames) // 2]
-        turned = np.swapaxes(middle, -1, -2)[:, None] @ relative
-        spreads.append(np.median(_angle_deg(turned), axis=1))
+        inner = np.stack([stored, np.swapaxes(stored, -1, -2)])  # op: (2, K, 3, 3)
+        # relative rotation Hᵀ L op(R) for every op and L: (2, 24, K, 3, 3); B cancels
+        relative = np.swapaxes(hand, -1, -2) @ CUBE[:, None] @ inner[:, None]
+        middle = relative[..., len(frames) // 2, :, :]
+        turned = np.swapaxes(middle, -1, -2)[..., None, :, :] @ relative
+        spreads.append(np.median(_angle_deg(turned), axis=-1))
     if not spreads:
-        return np.full(len(CUBE), np.nan), 0
+        return np.full((2, len(CUBE)), np.nan), 0
     return np.median(np.stack(spreads), axis=0), len(spreads)
 
 
@@ -288,14 +288,13 @@ def check_convention(
         The check; ``found`` is :data:`STANDARD` when the evidence is too thin (fewer than
         :data:`MIN_TURNING` turning carries or :data:`~dexflow.data.table.MIN_CAPTURES` rests).
     """
-    by_op = {op: carry_spread_deg(keypoints, poses, op) for op in (False, True)}
-    carried = by_op[False][1]
+    spread, carried = carry_spread_deg(keypoints, poses)  # (2, 24): as stored, transposed
     rest_stack = np.asarray(rests, dtype=np.float64).reshape(-1, 4, 4)
 
     def starts(convention: RotationConvention) -> float:
         return start_spread(hulls, convention.poses(rest_stack)) if len(rests) else np.nan
 
-    standard = (by_op[False][0][0], starts(STANDARD))
+    standard = (spread[0, 0], starts(STANDARD))
     reason = None
     if carried < MIN_TURNING:
         reason = (
@@ -307,13 +306,13 @@ def check_convention(
     found, scores = STANDARD, standard
     if reason is None:
         # op and L by the carry spread (ties keep the standard, then the identity: index 0)
-        op = min((False, True), key=lambda o: (round(np.nanmin(by_op[o][0]), 1), o))
-        left_index = int(np.argmin(np.round(by_op[op][0], 1)))
+        op = min((False, True), key=lambda o: (round(np.nanmin(spread[int(o)]), 1), o))
+        left_index = int(np.argmin(np.round(spread[int(op)], 1)))
         left = CUBE[left_index]
         right_starts = [starts(RotationConvention(left, op, right)) for right in CUBE]
         right_index = int(np.argmin(np.round(right_starts, 4)))  # ties: 0.1 mm, identity first
         candidate = RotationConvention(left, op, CUBE[right_index])
-        candidate_scores = (by_op[op][0][left_index], right_starts[right_index])
+        candidate_scores = (spread[int(op), left_index], right_starts[right_index])
         if not candidate.is_standard and all(
             c <= CLEARLY_BETTER * s for c, s in zip(candidate_scores, standard, strict=True)
         ):
