@@ -241,9 +241,9 @@ def rigid_ceiling(
     moves rigidly with the base of ``q``: ``B(t) B(lift)^-1 P(lift)``. Scored against the
     recorded poses by :func:`sequence_result`'s criteria, no physics. No grip, however good,
     makes the object follow its recording better than the hand's own path allows, so where the
-    ceiling fails the path is what fails: on DexYCB captures the recorded object turns in the
-    human hand (and symmetric objects' annotations spin about their axis), and a hand that
-    follows the human's wrist cannot reproduce that rotation.
+    ceiling fails the path is what fails: the recorded object turns in the human hand (or its
+    rotations are misread: ``dexflow convert`` checks them), and a hand that follows the
+    human's wrist cannot reproduce that rotation.
 
     Args:
         q: (T, dof) the trajectory (its base ``q[:, :6]``).

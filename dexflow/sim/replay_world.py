@@ -272,7 +272,8 @@ class ReplayWorld(MujocoGraspWorld):
         frames at ``pose`` (4, 4) on its table, the hand 10 m above it.
 
         A recorded resting pose the replay's table cannot hold (the object rests on an edge, so
-        the annotation or the table's frame is tilted) topples or rocks here on its own.
+        the annotation or the table's frame is tilted, or its rotations are misread) topples or
+        rocks here on its own.
         """
         self._require_object("rest_drift")
         m, d = self.model, self.data

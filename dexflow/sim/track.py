@@ -40,11 +40,12 @@ steps, each scored in the physics:
    fingertip moves). The search's result is kept only where its replay ranks above the
    schedule's; else the schedule is the output.
 
-What measured what, on the demo before its tilted rests (Shadow, 24 sequences): refine carries 8 %
+What measured what, on the demo (Shadow, 24 sequences): the refined trajectory carries 8 %
 (success); one schedule 38 %; the grid of 48 alone 46 %; the grid and the receding horizon
 50 % (13 CPU s per 70 frames). Moving the base by the object's error as feedback at every frame
 jerks the hand (its velocity is fed forward to the servos): one schedule with it, 38 % -> 4 %.
-On the demo with tilted rests and spinning annotations: refine 4 %, the whole search 25 %.
+With the demo's misread-rotation artefacts on (tilted rests, spinning annotations): refine 4 %,
+the whole search 25 %.
 
 The tracked trajectory's ``q`` is the state the hand reaches in the simulation (where it really
 is: fingers stopped at the object's surface, the base where its force-limited servos got it);

@@ -84,17 +84,16 @@ Two diagnostics per scored sequence say what bounds its success whatever the fin
   :func:`dexflow.sim.replay_criteria.rigid_ceiling`): the object welded to the trajectory's base
   from the recorded **lift** (the first frame it is 1 cm from where it was at the first contact),
   scored by the same criteria, no physics. No grip carries the object closer to its recording
-  than that hand path allows. On the demo 67-75 %; on 28 real DexYCB captures 7-14 % (both hands,
-  every method), with a mean rotation error of 1.0-1.1 rad and a mean position error of 1-6 cm:
-  the recorded object turns relative to the human hand (symmetric objects' annotations also spin
-  about their axis), and a hand that follows the human's wrist cannot turn it so.
+  than that hand path allows. On the demo 83-92 %; on 28 real DexYCB captures 61-86 % (both
+  hands, every method; 7-14 % with their object rotations misread, the recorded object turning
+  about 1 rad in the hand).
 - **Unstable rest** (``unstable_rest``, ``rest_drift_m``, ``rest_drift_rad``;
   :meth:`ReplayWorld.rest_drift`): the object left alone on the replay's table at its recorded
   pose at the first contact, for the frames from ``start`` to the lift, is *lost* (beyond
   ``lost_position_m`` or ``lost_rotation_rad``). It rests on an edge: its annotation, or the
-  table's frame, is tilted, and it topples whatever the hand does. The demo 33 % (its tilted
-  scenes); the 28 real captures 64 % (Shadow's windows) and 71 % (Allegro's), a mean drift of
-  5.7-7.7 cm.
+  table's frame, is tilted (or its rotations are misread), and it topples whatever the hand
+  does. The demo 0 % (33 % with its misread-rotation artefacts on); the 28 real captures 4 %
+  (Shadow's windows) and 7 % (Allegro's), 64-71 % with their rotations misread.
 
 The summary's rates and means (``success_rate``, ``spider_success_rate``, ``carried_rate``,
 ``lost_rate`` in %, ``position_error_mean_m``, ``rotation_error_mean_rad``,

@@ -508,8 +508,9 @@ def _replay_limits_notes(replay: dict) -> list[str]:
             f"- **Replay, {METHOD_LABELS['refine']}: rigid ceiling {ceiling:.0f} %.** An object "
             "welded to the hand from the recorded lift would follow its recording in only "
             f"{ceiling:.0f} % of the sequences (mean rotation error {rotation:.2f} rad): the "
-            "recorded object turns relative to the hand (or its annotation spins), so no grip "
-            "on this hand path can succeed more often."
+            "recorded object turns relative to the hand (or its annotation spins, or its "
+            "rotations are misread: `dexflow convert` checks them), so no grip on this hand "
+            "path can succeed more often."
         )
     unstable = replay.get("unstable_rest_rate")
     if unstable:
@@ -1421,7 +1422,7 @@ def _definitions(stage: dict, limits: dict | None, methods=CORE_METHODS) -> list
         "lift would have (no physics): no grip does better along that base path.",
         "- *Unstable rest*: the share of sequences whose object, left alone on the replay's "
         "table at its recorded pose, is *lost* before the recorded lift (it rests on an edge: "
-        "the annotation or the table's frame is tilted).",
+        "the annotation or the table's frame is tilted, or its rotations are misread).",
         *(
             [
                 f"- *{METHOD_LABELS['track']}*: stage track's trajectories, searched in the "
