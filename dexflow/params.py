@@ -729,7 +729,9 @@ class TrackParams:
         schedule_scales: Grid of schedules: times ``squeeze_m`` the fingers press, ...
         schedule_ramps: ... frames the press ramps in over, ...
         schedule_leads: ... ending this many frames before the lift, ...
-        schedule_backoffs: ... the fingers held this times ``squeeze_m`` back until then.
+        schedule_backoffs: ... the fingers held this times ``squeeze_m`` back until then, ...
+        schedule_holds: ... and from the lift on the fingers' targets kept as they are there
+            (true) or following the refined trajectory (false).
         mpc: Run the receding-horizon search around the best schedule.
         horizon_frames: Frames each candidate is rolled out ahead.
         samples: Random perturbations of the plan per round and frame.
@@ -752,6 +754,7 @@ class TrackParams:
     schedule_ramps: list[int]
     schedule_leads: list[int]
     schedule_backoffs: list[float]
+    schedule_holds: list[bool]
     mpc: bool
     horizon_frames: int
     samples: int
@@ -776,7 +779,8 @@ def _validate_track(t: TrackParams, methods: dict) -> None:
     for key in ("samples", "noise_base_m", "noise_base_rad", "noise_finger_rad", "prior_weight",
                 "rotation_weight_m_per_rad", "contact_weight", "squeeze_reach_m"):  # fmt: skip
         _require(getattr(t, key) >= 0, f"track.{key}", ">= 0", getattr(t, key))
-    for key in ("schedule_scales", "schedule_ramps", "schedule_leads", "schedule_backoffs"):
+    for key in ("schedule_scales", "schedule_ramps", "schedule_leads", "schedule_backoffs",
+                "schedule_holds"):  # fmt: skip
         values = list(getattr(t, key))
         _require(bool(values) and min(values) >= 0, f"track.{key}", "a non-empty list, >= 0",
                  values)  # fmt: skip

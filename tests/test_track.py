@@ -14,9 +14,9 @@ import trimesh
 from dexflow.hands import load_hand
 from dexflow.objects.convex import write_convex_obj
 from dexflow.params import ReplayParams, TrackParams
-from dexflow.sim.replay_criteria import sequence_result
+from dexflow.sim.replay_criteria import lift_frame, sequence_result
 from dexflow.sim.replay_world import ReplayWorld
-from dexflow.sim.track import grip_schedule, track_sequence
+from dexflow.sim.track import grip_parts, grip_schedule, guided_targets, track_sequence
 
 from .test_hands import _gripper
 from .test_replay import BOX, gripper_over_box
@@ -121,3 +121,30 @@ def test_grip_ramps_in_before_the_lift():
     np.testing.assert_allclose(share[lift - 2 : lift], [1 / 3, 2 / 3])
     np.testing.assert_allclose(share[lift:26], 1.0)
     np.testing.assert_allclose(share[26:], 0.0)
+
+
+def test_a_held_grasp_keeps_the_fingers_targets_of_the_lift(scene):
+    """With ``hold`` the fingers' targets from the lift to the window's end are those at the
+    lift, whatever the refined fingers do meanwhile (here: open wide mid-carry); before the
+    lift and for the base the schedule is the one without the hold. The held schedule carries
+    the box."""
+    world, q, poses, fingers, window = scene
+    jittery = q.copy()
+    mid = APPROACH + HOLD + LIFT // 2
+    jittery[mid : mid + 4, 6:] = q[0, 6:] + 0.5  # opened beyond the squeeze's reach
+    parts = grip_parts(world, jittery, poses, window, fingers, SETTINGS)
+    held, followed = (
+        guided_targets(jittery, parts, poses, window, (1.0, 2, 0, 0.0, hold))
+        for hold in (True, False)
+    )
+    lift = lift_frame(poses, window)
+    assert APPROACH + HOLD < lift < mid
+    np.testing.assert_array_equal(held[: lift + 1], followed[: lift + 1])
+    np.testing.assert_array_equal(held[:, :6], followed[:, :6])
+    end = window[2]
+    np.testing.assert_array_equal(
+        held[lift : end + 1, 6:], np.tile(held[lift, 6:], (end + 1 - lift, 1))
+    )
+    assert np.abs(followed[mid, 6:] - held[mid, 6:]).max() > 0.1  # it did not follow the opening
+    _, result = _score(world, held, poses, window)
+    assert result["success"] and result["carried"]

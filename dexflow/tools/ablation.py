@@ -152,6 +152,7 @@ SUITES: dict[str, tuple[Question, ...]] = {
                 "track_few_samples",
                 "track_short_horizon",
                 "track_one_schedule",
+                "track_no_hold",
                 "track_no_mpc",
                 "track_no_contact_guidance",
                 "track_no_object_guidance",
