@@ -3,8 +3,15 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-__all__ = ["rotate_vectors", "transform_points", "world_to_object"]
+__all__ = [
+    "pose_from_vector",
+    "pose_vector",
+    "rotate_vectors",
+    "transform_points",
+    "world_to_object",
+]
 
 
 def transform_points(transform, points):
@@ -52,3 +59,18 @@ def world_to_object(points: np.ndarray, obj_pose: np.ndarray) -> np.ndarray:
         (T, N, 3) the points in object-mesh coordinates.
     """
     return transform_points(np.linalg.inv(np.asarray(obj_pose)), points)
+
+
+def pose_vector(pose: np.ndarray) -> np.ndarray:
+    """(T, 7) ``[x, y, z, qw, qx, qy, qz]`` (qw >= 0) of rigid transforms ``pose (T, 4, 4)``."""
+    quat = Rotation.from_matrix(pose[:, :3, :3]).as_quat(canonical=True, scalar_first=True)
+    return np.concatenate([pose[:, :3, 3], quat], axis=1)
+
+
+def pose_from_vector(vector: np.ndarray) -> np.ndarray:
+    """(T, 4, 4) rigid transforms of ``vector (T, 7)`` = ``[x, y, z, qw, qx, qy, qz]``."""
+    vector = np.asarray(vector, dtype=np.float64)
+    pose = np.repeat(np.eye(4)[None], len(vector), axis=0)
+    pose[:, :3, :3] = Rotation.from_quat(vector[:, 3:], scalar_first=True).as_matrix()
+    pose[:, :3, 3] = vector[:, :3]
+    return pose

@@ -35,7 +35,7 @@ _REPLAYED = {"num_scored": 3, "success_rate": 200 / 3, "spider_success_rate": 10
              "carried_rate": 200 / 3, "lost_rate": 100 / 3, "position_error_mean_m": 0.042,
              "rotation_error_mean_rad": 0.21, "ceiling_success_rate": 100.0,
              "unstable_rest_rate": 0.0}  # fmt: skip
-_TRACKED = {"num_tracked": 3, "feasible_rate": 200 / 3,
+_TRACKED = {"num_tracked": 3, "feasible_rate": 200 / 3, "grip_drift_mean_m": 0.0104,
             "timing": {"cpu_seconds_per_70_frames": 41.5}}  # fmt: skip
 
 
@@ -64,6 +64,7 @@ def test_table_has_one_row_per_hand_and_method_and_marks_missing_values():
         in text_on
     )
     assert "- shadow, stage track: 3 tracked, feasible 66.7 %; 41.5 CPU s per 70 frames" in text_on
+    assert "(one core); grip drift 10.4 mm (the human's fingertips slide" in text_on
     refine = next(r for r in rows if r.startswith("| shadow | DexFlow + refine"))
     assert refine.split("|")[3].strip() == "7.2" and refine.split("|")[7].strip() == "3.0"
     baseline = next(r for r in rows if r.startswith("| shadow | position baseline"))

@@ -10,19 +10,26 @@ import pytest
 import torch
 import trimesh
 
+from dexflow.geometry import pose_vector
 from dexflow.hands import load_hand
 from dexflow.hands.robot import MEASURE_POINTS, measurement_hand
 from dexflow.measures import (
     CD_CAP_M,
     capped_contact_distance,
     contact_distance,
+    grip_drift,
     penetration_depth,
     state_flicker,
     surface_distances,
 )
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import MetricsParams
-from dexflow.stages.metrics import SelfCollision, chamfer_per_frame, trajectory_metrics
+from dexflow.stages.metrics import (
+    SelfCollision,
+    _own_poses,
+    chamfer_per_frame,
+    trajectory_metrics,
+)
 from dexflow.stages.report import write_summary
 from dexflow.tools.experiments import Experiment, collect_dvc, collect_multirun, write_ablation
 
@@ -49,6 +56,49 @@ def test_penetration_depth_of_a_known_overlap(allegro, depth):
     sdf, pose = _wall(allegro, q, depth)
     distances, _ = surface_distances(allegro, q, pose[None], sdf)
     assert penetration_depth(distances)[0] == pytest.approx(depth, abs=3e-4)
+
+
+@pytest.mark.parametrize("depth", [0.004, 0.01])
+def test_own_object_penetration_is_against_the_object_the_trajectory_holds(allegro, depth):
+    """A hand ``depth`` inside the recorded object and clear of its own (moved 5 cm away):
+    ``pd_mm`` sees the depth, ``pd_own_object_mm`` none; without own poses both agree."""
+    q = allegro.zero(3).numpy()
+    sdf, pose = _wall(allegro, q[0], depth)
+    recorded = np.repeat(pose[None], 3, axis=0)
+    moved = recorded.copy()
+    moved[:, 0, 3] += 0.05  # the wall's face 5 cm beyond the hand
+    pose7 = pose_vector(moved)
+    pose7[0] = np.nan  # outside the replay window: the recorded pose
+    own = _own_poses(pose7, recorded)
+    assert np.allclose(own[0], recorded[0]) and np.allclose(own[1:], moved[1:], atol=1e-12)
+    assert _own_poses(None, recorded) is None
+    args = (q, allegro.keypoints(torch.as_tensor(q)).detach().numpy(), np.ones(3, bool))
+    rest = (sdf, np.zeros((3, 4), bool), 30.0, MetricsParams())
+    held, _ = trajectory_metrics(allegro, *args, recorded, *rest, own)
+    assert held["pd_mm"] >= 1000 * depth - 0.3  # the measured hand reaches at least as far
+    assert held["pd_own_object_mm"] == pytest.approx(held["pd_mm"] / 3)  # frame 0 only
+    plain, _ = trajectory_metrics(allegro, *args, recorded, *rest)
+    assert plain["pd_own_object_mm"] == plain["pd_mm"] == held["pd_mm"]
+
+
+def test_grip_drift_of_a_rigid_and_a_sliding_grip():
+    """Fingertips fixed on a tumbling object do not drift; a fingertip that alternates between
+    two points 2 d apart on it drifts d (any point between is a median, at mean distance d)."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    frames = 30
+    poses = np.repeat(np.eye(4)[None], frames, axis=0)
+    poses[:, :3, :3] = Rotation.random(frames, random_state=4).as_matrix()
+    poses[:, :3, 3] = rng.normal(size=(frames, 3))
+    fixed = rng.normal(size=(5, 3)) * 0.05
+    sliding = np.repeat(fixed[None], frames, axis=0)
+    sliding[:, 1, 0] += np.where(np.arange(frames) % 2, 0.01, -0.01)  # tip 1: +-1 cm
+    world = np.einsum("tij,tfj->tfi", poses[:, :3, :3], sliding) + poses[:, None, :3, 3]
+    rigid = np.einsum("tij,fj->tfi", poses[:, :3, :3], fixed) + poses[:, None, :3, 3]
+    assert grip_drift(rigid, poses) == pytest.approx(0.0, abs=1e-9)
+    assert grip_drift(world, poses) == pytest.approx(0.01 / 5, rel=1e-6)  # one tip of five
+    assert np.isnan(grip_drift(world[:1], poses[:1]))
 
 
 def test_contact_distance_and_flicker_by_hand():

@@ -118,8 +118,13 @@ def test_track_on_adds_a_fourth_method_the_same_on_any_worker_count(reproduced_d
     assert track["num_tracked"] + sum(not e["tracked"] for e in track["sequences"].values()) == 2
     for entry in track["sequences"].values():
         assert entry["feasible"] == (entry["tracked"] and entry["success"])
+        assert not entry["tracked"] or 0 <= entry["grip_drift_m"] < 0.05
     metrics = json.loads((project / "reports/metrics/metrics.json").read_text())
     assert {"track.keypoint_error_mm", "track.pd_mm", "refine.pd_mm"} <= set(metrics)
+    # track's hand holds the simulated object: its own-object PD differs from the recorded's;
+    # refine moves nothing, so its two are one number
+    assert metrics["refine.pd_own_object_mm"] == metrics["refine.pd_mm"]
+    assert metrics["track.pd_own_object_mm"] != metrics["track.pd_mm"]
     replayed = json.loads((project / "reports/metrics/replay_track.json").read_text())
     assert replayed["num_scored"] == track["num_tracked"]
     assert json.loads((project / "reports/metrics/track_refine.json").read_text())[

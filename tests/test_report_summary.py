@@ -204,7 +204,8 @@ def _add_track(metrics, table, plots) -> None:
                "lost_rate": 0.0}  # fmt: skip
     (metrics / "replay_track.json").write_text(json.dumps(replay))
     tracked = {"num_tracked": 8, "feasible_rate": 75.0, "position_error_mean_m": 0.02,
-               "rotation_error_mean_rad": 0.1, "position_error_final_m": 0.03, "lost_rate": 12.5}  # fmt: skip
+               "rotation_error_mean_rad": 0.1, "position_error_final_m": 0.03, "lost_rate": 12.5,
+               "grip_drift_mean_m": 0.0123}  # fmt: skip
     (metrics / "track_refine.json").write_text(json.dumps(tracked))
 
 
@@ -233,6 +234,7 @@ def test_a_tracked_run_shows_the_fourth_method_wherever_the_three_are(tmp_path, 
     assert "8 sequences tracked, *feasible* (the tracked trajectory's replay succeeds) 75.0 %" in (
         replay
     )
+    assert "lost 12 %; grip drift 12.3 mm (the human's fingertips slide" in replay
     assert "| | baseline | retarget | refine | track | sequences | interval |" in text
     assert "*DexFlow + tracking (physics)*: stage track's" in _section(text, "Definitions")
 

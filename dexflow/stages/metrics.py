@@ -33,7 +33,13 @@ Definitions (per sequence; the aggregate is the mean over sequences unless said 
   signed distance to the object's mesh; 0 if none), averaged over frames
   (:func:`dexflow.measures.penetration_depth`, the same definition stage simulate's
   penetration rule uses). ``pd_max_mm``: the deepest of any frame (the aggregate is the
-  largest over sequences, not the mean).
+  largest over sequences, not the mean). Always against the recorded object.
+- ``pd_own_object_mm``: the same against the object where the trajectory itself puts it. A
+  trajectory that carries the object in physics (stage track) comes with its own object poses
+  (``object_pose7``, the simulated object, in the replay window): its hand holds that object,
+  which is centimetres from the recorded one, so ``pd_mm`` measures mostly that distance and
+  this one the hand inside the object it holds. For the others (their object is the recorded
+  one) it equals ``pd_mm``.
 - ``cd_mm`` (contact distance, BODex's ``contact_dist``): per grasp frame (stage contact finds
   any finger in contact), **every** finger's smallest distance to the object surface clipped
   to [0, 10 mm], averaged over the fingers, then over the grasp frames
@@ -75,6 +81,7 @@ import numpy as np
 import torch
 from scipy.spatial import ConvexHull
 
+from dexflow.geometry import pose_from_vector
 from dexflow.hands.files import staged_spec
 from dexflow.hands.robot import RobotHand, cached_hand, measurement_hand
 from dexflow.human.keypoints import FINGERS
@@ -244,6 +251,7 @@ def trajectory_metrics(
     contact: np.ndarray,
     fps: float,
     params: MetricsParams,
+    own_pose: np.ndarray | None = None,
 ) -> tuple[dict, dict[str, np.ndarray]]:
     """Metrics of one trajectory (see the module docstring).
 
@@ -253,6 +261,8 @@ def trajectory_metrics(
         observed: (T,) frames with a real observation.
         obj_pose: (T, 4, 4) object poses.
         contact: (T, F) contact states (fingers in the hand config's order).
+        own_pose: (T, 4, 4) the object's poses in the trajectory itself, where it has its own
+            (stage track's simulated object); None: ``obj_pose``.
 
     Returns:
         Scalars per sequence, and per-frame arrays (``keypoint_error_m``, ``pd_m``, ``cd_m``,
@@ -273,6 +283,7 @@ def trajectory_metrics(
         chamfer[observed] = chamfer_per_frame(human[observed], robot[observed])
     measured = measurement_hand(hand)  # every collision shape, forearm and palm included
     pd, per_finger = hand_object_depths(measured, q, obj_pose, sdf)
+    pd_own = pd if own_pose is None else hand_object_depths(measured, q, own_pose, sdf)[0]
     cd = capped_contact_distance(per_finger, np.asarray(contact, dtype=bool).any(axis=1))
     cd_contact = contact_distance(per_finger, contact)
     spd = self_collision(measured)(q)
@@ -292,6 +303,7 @@ def trajectory_metrics(
         "rms_acc": rms_acceleration(joints, fps),
         "pd_mm": _mean_mm(pd),
         "pd_max_mm": float(pd.max() * 1000) if len(pd) else float("nan"),
+        "pd_own_object_mm": _mean_mm(pd_own),
         "cd_mm": _mean_mm(cd),
         "cd_contact_mm": _mean_mm(cd_contact),
         "spd_mm": _mean_mm(spd),
@@ -299,6 +311,18 @@ def trajectory_metrics(
     }
     frames = {"keypoint_error_m": error, "pd_m": pd, "cd_m": cd, "spd_m": spd}
     return scalars, {**frames, "tip_speed_robot": speed_robot, "tip_speed_human": speed_human}
+
+
+def _own_poses(pose7: np.ndarray | None, recorded: np.ndarray) -> np.ndarray | None:
+    """(T, 4, 4) the object's poses of a trajectory with its own (``object_pose7 (T, 7)``,
+    NaN where it has none: the recorded pose there); None for one without."""
+    if pose7 is None:
+        return None
+    pose7 = np.asarray(pose7, dtype=np.float64)
+    own = np.array(recorded, dtype=np.float64)
+    rows = np.isfinite(pose7).all(axis=1)
+    own[rows] = pose_from_vector(pose7[rows])
+    return own
 
 
 def _mean_mm(values: np.ndarray) -> float:
@@ -356,12 +380,13 @@ def run_metrics(params: PipelineParams, layout: Layout) -> dict:
         entry = {"object": seq.obj_name, "frames": frames, "methods": {}}
         per_frame = {}
         for method in methods:
-            q = read_trajectory(
+            trajectory = read_trajectory(
                 layout.trajectory(method).sequence(path), hand.joint_names, frames
-            ).q
-            scalars, values = trajectory_metrics(
-                hand, q, human, observed, seq.obj_pose, sdf, found.final, seq.fps, mp
             )
+            scalars, values = trajectory_metrics(
+                hand, trajectory.q, human, observed, seq.obj_pose, sdf, found.final, seq.fps,
+                mp, _own_poses(trajectory.arrays.get("object_pose7"), seq.obj_pose),
+            )  # fmt: skip
             sim = simulated[method].get(path.stem, {})
             if sim.get("status") == "ok":
                 scalars["ssr"] = 100.0 * sim["success"]
@@ -436,8 +461,8 @@ def _write_tables(
     plots.mkdir(parents=True, exist_ok=True)
     columns = ["sequence", "object", "hand", "method", "frames", "keypoint_error_mm",
                "fingertip_error_mm", "fingertip_error_surface_mm", "time_aligned_cd_mm",
-               "velocity_kl", "rms_acc", "pd_mm", "pd_max_mm", "cd_mm", "cd_contact_mm", "spd_mm",
-               "fvr", "ssr", "ssr_paper", "ssr_bench"]  # fmt: skip
+               "velocity_kl", "rms_acc", "pd_mm", "pd_max_mm", "pd_own_object_mm", "cd_mm",
+               "cd_contact_mm", "spd_mm", "fvr", "ssr", "ssr_paper", "ssr_bench"]  # fmt: skip
     with atomic_path(table) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(columns)

@@ -674,7 +674,11 @@ def _tracking_bullet(tracked: dict | None) -> list[str]:
         f"trajectory's replay succeeds) {cell(tracked.get('feasible_rate'), 1)} % of them; "
         f"object error {cell(position, 1)} cm (final {cell(final, 1)} cm), "
         f"{cell(tracked.get('rotation_error_mean_rad'))} rad; lost "
-        f"{cell(tracked.get('lost_rate'), 0)} % (`reports/metrics/{TRACK_SUMMARY}.json`)."
+        f"{cell(tracked.get('lost_rate'), 0)} %; grip drift "
+        f"{cell(_scaled(tracked.get('grip_drift_mean_m'), 1000), 1)} mm (the human's fingertips "
+        "slide that far over the recorded object while it is carried: a grasp that holds it and "
+        "moves it as recorded misses them by at least that much; "
+        f"`reports/metrics/{TRACK_SUMMARY}.json`)."
     ]
 
 

@@ -14,10 +14,15 @@ false, ``not_tracked_reason`` the replay's reason).
 
 **Feasible**: the tracked trajectory's replay succeeds by the replay's criteria (SPIDER's
 thresholds and carried). Per sequence: ``tracked``, ``feasible``, ``not_tracked_reason`` and the
-replay's summary entry of the tracked trajectory (``success``, ``position_error_mean_m``, ...).
+replay's summary entry of the tracked trajectory (``success``, ``position_error_mean_m``, ...),
+and ``grip_drift_m``: how far the human's fingertips slide over the recorded object while it is
+carried (:func:`dexflow.measures.grip_drift` of the scaled fingertips over the valid frames from
+the lift to the window's end). A grasp that holds the object, as a carrying one must, and moves
+it exactly as recorded misses the human's fingertips on those frames by at least that much, so
+it says how much of the tracked trajectory's fingertip error the recording itself demands.
 Summary: ``num_tracked``, ``feasible_rate`` (% of the tracked), the means of the object errors
-(``position_error_mean_m``, ``rotation_error_mean_rad``, ``position_error_final_m``) and
-``lost_rate``; the search's CPU time goes to ``reports/timing/track_refine.json``
+(``position_error_mean_m``, ``rotation_error_mean_rad``, ``position_error_final_m``),
+``lost_rate`` and ``grip_drift_mean_m``; the search's CPU time goes to ``reports/timing/track_refine.json``
 (``cpu_seconds``, ``cpu_seconds_per_frame`` and ``cpu_seconds_per_70_frames`` of the replay
 windows: the search is linear in frames).
 
@@ -38,13 +43,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dexflow.human.keypoints import FINGERTIPS
 from dexflow.io.artifacts import ObjectAssets, Trajectory, read_trajectory, write_trajectory
 from dexflow.io.layout import Layout
+from dexflow.measures import finite_mean, grip_drift
 from dexflow.params import PipelineParams
 from dexflow.pipeline.labelled import labelled_hand, load_labelled
 from dexflow.pipeline.resume import StageOutput
 from dexflow.pipeline.runner import StageSpec
-from dexflow.sim.replay_criteria import replay_window
+from dexflow.sim.replay_criteria import lift_frame, replay_window
 from dexflow.sim.replay_world import replay_world
 from dexflow.sim.track import track_sequence
 
@@ -104,6 +111,10 @@ def run_track(params: PipelineParams, layout: Layout, label: str = "refine") -> 
         )
         seconds = time.process_time() - begin
         scored = result["replayed"]  # the replay of its targets, as stage replay's
+        carry = np.arange(lift_frame(seq.obj_pose, frames), window.end + 1)
+        if seq.valid is not None:
+            carry = carry[np.asarray(seq.valid, dtype=bool)[carry]]
+        drift = grip_drift(seq.keypoints[carry][:, list(FINGERTIPS)], seq.obj_pose[carry])
         arrays.update(
             targets=result["targets"], object_pose7=result["object_pose7"], cost=result["cost"]
         )
@@ -113,6 +124,7 @@ def run_track(params: PipelineParams, layout: Layout, label: str = "refine") -> 
             "tracked": True,
             "feasible": bool(scored["success"]),
             "not_tracked_reason": None,
+            "grip_drift_m": drift,
             "seconds": seconds,
         }
 
@@ -133,6 +145,7 @@ def run_track(params: PipelineParams, layout: Layout, label: str = "refine") -> 
         "rotation_error_mean_rad": mean("rotation_error_mean_rad"),
         "position_error_final_m": mean("position_error_final_m"),
         "lost_rate": 100 * mean("lost"),
+        "grip_drift_mean_m": finite_mean(np.array([e["grip_drift_m"] for e in tracked])),
     }
     summary["sequences"] = dict(sorted(tally.sequences.items()))
     stage.finish(summary)

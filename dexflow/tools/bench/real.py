@@ -20,6 +20,7 @@ REAL_COLUMNS = (
     ("rms_acc", "RMS acc rad/s²", "{:.2f}"),
     ("pd_mm", "PD mean mm", "{:.2f}"),
     ("pd_max_mm", "PD max mm", "{:.1f}"),
+    ("pd_own_object_mm", "PD own object mm", "{:.2f}"),
     ("cd_mm", "CD mm", "{:.2f}"),
     ("ssr", "SSR %", "{:.1f}"),
     ("ssr_paper", "SSR paper %", "{:.1f}"),
@@ -97,7 +98,10 @@ def _replay_lines(results: dict[str, dict], names: dict[str, str]) -> list[str]:
             lines.append(
                 f"- {hand}, stage track: {track['num_tracked']} tracked, feasible "
                 f"{track['feasible_rate']:.1f} %; {timing.get('cpu_seconds_per_70_frames', 0):.1f} "
-                "CPU s per 70 frames of the replay window (one core)."
+                "CPU s per 70 frames of the replay window (one core); grip drift "
+                f"{1000 * track.get('grip_drift_mean_m', float('nan')):.1f} mm (the human's "
+                "fingertips slide that far over the recorded object while it is carried: a "
+                "grasp that holds it and moves it as recorded misses them by at least that much)."
             )
     return lines
 

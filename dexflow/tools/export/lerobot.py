@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
-from scipy.spatial.transform import Rotation
 
+from dexflow.geometry import pose_from_vector, pose_vector
 from dexflow.tools.export.episodes import Episode, Export, ExportError
 from dexflow.tools.export.hdf5 import FORMAT, FORMAT_VERSION
 
@@ -45,21 +45,6 @@ CHUNKS_SIZE = 1000
 DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
 POSE_NAMES = ["x", "y", "z", "qw", "qx", "qy", "qz"]
 _INDEX = ("timestamp", "frame_index", "episode_index", "index", "task_index")
-
-
-def pose_vector(pose: np.ndarray) -> np.ndarray:
-    """(T, 7) ``[x, y, z, qw, qx, qy, qz]`` (qw >= 0) of rigid transforms ``pose (T, 4, 4)``."""
-    quat = Rotation.from_matrix(pose[:, :3, :3]).as_quat(canonical=True, scalar_first=True)
-    return np.concatenate([pose[:, :3, 3], quat], axis=1)
-
-
-def pose_from_vector(vector: np.ndarray) -> np.ndarray:
-    """(T, 4, 4) rigid transforms of ``vector (T, 7)`` = ``[x, y, z, qw, qx, qy, qz]``."""
-    vector = np.asarray(vector, dtype=np.float64)
-    pose = np.repeat(np.eye(4)[None], len(vector), axis=0)
-    pose[:, :3, :3] = Rotation.from_quat(vector[:, 3:], scalar_first=True).as_matrix()
-    pose[:, :3, 3] = vector[:, :3]
-    return pose
 
 
 def _features(export: Export) -> dict[str, dict]:
