@@ -15,7 +15,9 @@ from dexflow.hands import load_hand
 from dexflow.hands.robot import MEASURE_POINTS, measurement_hand
 from dexflow.measures import (
     CD_CAP_M,
+    SelfCollision,
     capped_contact_distance,
+    chamfer_per_frame,
     contact_distance,
     grip_drift,
     penetration_depth,
@@ -24,12 +26,7 @@ from dexflow.measures import (
 )
 from dexflow.objects.sdf import SignedDistanceGrid
 from dexflow.params import MetricsParams
-from dexflow.stages.metrics import (
-    SelfCollision,
-    _own_poses,
-    chamfer_per_frame,
-    trajectory_metrics,
-)
+from dexflow.stages.metrics import _own_poses, trajectory_metrics
 from dexflow.stages.report import write_summary
 from dexflow.tools.experiments import Experiment, collect_dvc, collect_multirun, write_ablation
 

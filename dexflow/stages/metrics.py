@@ -79,7 +79,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial import ConvexHull
 
 from dexflow.geometry import pose_from_vector
 from dexflow.hands.files import staged_spec
@@ -99,14 +98,15 @@ from dexflow.io.layout import CORE_TRAJECTORIES, TRAJECTORIES, Layout
 from dexflow.io.sequence import load_sequence
 from dexflow.measures import (
     capped_contact_distance,
+    chamfer_per_frame,
     contact_counts,
     contact_distance,
     fingertip_speeds,
     finite_mean,
-    frame_chunks,
     hand_object_depths,
     precision_recall,
     rms_acceleration,
+    self_collision,
     state_flicker,
     velocity_kl,
 )
@@ -118,124 +118,11 @@ from dexflow.pipeline.runner import StageSpec
 __all__ = [
     "METHODS",
     "STAGE",
-    "SelfCollision",
-    "chamfer_per_frame",
     "run_metrics",
     "trajectory_metrics",
 ]
 
 METHODS = CORE_TRAJECTORIES  # the methods every project has; track's with track=on
-
-
-# ------------------------------------------------------------------------ hand-object measures
-
-
-def chamfer_per_frame(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Symmetric Chamfer distance per frame between point sets (T, A, 3) and (T, B, 3)."""
-    d = np.linalg.norm(a[:, :, None] - b[:, None], axis=-1)  # (T, A, B)
-    return 0.5 * (d.min(axis=2).mean(axis=1) + d.min(axis=1).mean(axis=1))
-
-
-class SelfCollision:
-    """Depth of hand surface points inside the collision shapes of non-adjacent links.
-
-    Boxes, cylinders and meshes are treated as convex polytopes (their convex hull's planes:
-    exact depth inside, which is all a penetration depth needs); spheres and capsules exactly.
-    """
-
-    def __init__(self, hand: RobotHand) -> None:
-        self.hand = hand
-        model = hand.model
-        has_geometry = {g.link for g in model.geometries}
-
-        def geometric_parent(link: str) -> str | None:
-            parent = model.parents.get(link, (None, None))[0]
-            while parent is not None and parent not in has_geometry:
-                parent = model.parents.get(parent, (None, None))[0]
-            return parent
-
-        self.shapes = []  # (link, kind, data)
-        for g in model.geometries:
-            vertices = np.asarray(g.mesh.vertices)
-            center = vertices.mean(axis=0)
-            bound = (center, float(np.linalg.norm(vertices - center, axis=1).max()) + 1e-6)
-            if g.kind in ("sphere", "capsule"):
-                middle = g.transform[:3, 3]
-                axis = g.transform[:3, 2] * (g.size[1] if g.kind == "capsule" else 0.0)
-                data = (middle - axis, middle + axis, g.size[0])
-                self.shapes.append((g.link, "capsule", data, bound))
-            else:
-                hull = ConvexHull(vertices)
-                self.shapes.append((g.link, "polytope", hull.equations, bound))
-        self.links = list(dict.fromkeys(shape[0] for shape in self.shapes))
-        point_links = np.asarray(hand.surface_point_links)
-        parents = {link: geometric_parent(link) for link in has_geometry}
-        self.masks = []  # per shape: which surface points may penetrate it
-        for link, *_ in self.shapes:
-            adjacent = {link, parents.get(link)} | {k for k, p in parents.items() if p == link}
-            self.masks.append(~np.isin(point_links, sorted(a for a in adjacent if a)))
-        zero_chunk = self._chunk(hand.zero().numpy())
-        for s in range(len(self.shapes)):  # pairs overlapping at the zero pose
-            _, cols, depth = self._depths(zero_chunk, s, self.masks[s])
-            inside = np.flatnonzero(self.masks[s])[cols[depth > 1e-6]]
-            overlapping = sorted({point_links[i] for i in inside})
-            self.masks[s] &= ~np.isin(point_links, overlapping)
-
-    def _chunk(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World surface points (T, N, 3) and the shapes' link transforms (T, L, 4, 4)."""
-        with torch.no_grad():
-            qt = torch.as_tensor(q, dtype=self.hand.dtype)
-            points = self.hand.surface(qt, normals=False)[0].numpy()
-            return points, self.hand.link_transforms(qt, self.links).numpy()
-
-    def _depths(self, chunk: tuple[np.ndarray, np.ndarray], s: int, mask: np.ndarray):
-        """The surface points in ``mask`` near shape ``s`` (within its bounding sphere) in
-        each frame of ``chunk`` (:meth:`_chunk`): their frame rows (K,), their columns among
-        the points of ``mask`` (K,) and their depth inside the shape (K,), 0 where outside.
-        Sparse, so that a frame's deepest point costs only the points near each shape."""
-        points, frames = chunk
-        link, kind, data, (center, radius) = self.shapes[s]
-        t = frames[:, self.links.index(link)]
-        rot, pos = t[:, :3, :3], t[:, :3, 3]
-        candidates = points[:, mask]  # (T, M, 3)
-        center_world = rot @ center + pos  # (T, 3)
-        near = np.sum((candidates - center_world[:, None]) ** 2, axis=-1) < radius**2  # cull
-        rows, cols = np.nonzero(near)
-        if len(rows) == 0:
-            return rows, cols, np.zeros(0)
-        # only the points near the shape go to its frame: x = Rᵀ (p - o)
-        x = ((candidates[rows, cols] - pos[rows])[:, None, :] @ rot[rows])[:, 0]  # (K, 3)
-        if kind == "capsule":
-            a, b, r = data
-            ab = b - a
-            u = np.clip(((x - a) @ ab) / max(ab @ ab, 1e-12), 0.0, 1.0)
-            depth = r - np.linalg.norm(x - (a + u[:, None] * ab), axis=-1)
-        else:
-            depth = -(x @ data[:, :3].T + data[:, 3]).max(axis=-1)
-        return rows, cols, np.clip(depth, 0.0, None)
-
-    def __call__(self, q: np.ndarray) -> np.ndarray:
-        """(T,) self-penetration depth (m) of configurations ``q (T, dof)``."""
-        q = np.asarray(q)
-        out = np.zeros(len(q))
-        for frames in frame_chunks(len(q)):  # memory bounded by a chunk, not the sequence
-            chunk = self._chunk(q[frames])
-            deepest = np.zeros(len(chunk[0]))
-            for s, mask in enumerate(self.masks):
-                rows, _, depth = self._depths(chunk, s, mask)
-                np.maximum.at(deepest, rows, depth)
-            out[frames] = deepest
-        return out
-
-
-_SELF: dict[int, SelfCollision] = {}
-
-
-def self_collision(hand: RobotHand) -> SelfCollision:
-    """One :class:`SelfCollision` per hand and process."""
-    if id(hand) not in _SELF:
-        _SELF[id(hand)] = SelfCollision(hand)
-    return _SELF[id(hand)]
 
 
 # ------------------------------------------------------------------------------ per sequence
