@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     "pose_from_vector",
     "pose_vector",
+    "rigid_fit",
     "rotate_vectors",
     "transform_points",
     "world_to_object",
@@ -74,3 +75,22 @@ def pose_from_vector(vector: np.ndarray) -> np.ndarray:
     pose[:, :3, :3] = Rotation.from_quat(vector[:, 3:], scalar_first=True).as_matrix()
     pose[:, :3, 3] = vector[:, :3]
     return pose
+
+
+def rigid_fit(source: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """(T, 4, 4) the rigid transforms that best map the points ``source (K, 3)`` onto each
+    ``targets[t] (K, 3)`` (least squares: Kabsch's method, reflections excluded)."""
+    source = np.asarray(source, dtype=np.float64)
+    targets = np.asarray(targets, dtype=np.float64)
+    a = source - source.mean(axis=0)
+    b_mean = targets.mean(axis=1)  # (T, 3)
+    cov = np.einsum("ki,tkj->tij", a, targets - b_mean[:, None])  # (T, 3, 3)
+    u, _, vt = np.linalg.svd(cov)
+    sign = np.sign(np.linalg.det(np.swapaxes(vt, 1, 2) @ np.swapaxes(u, 1, 2)))
+    flip = np.ones((len(cov), 3))
+    flip[:, 2] = sign
+    rot = np.swapaxes(vt, 1, 2) @ (flip[:, :, None] * np.swapaxes(u, 1, 2))
+    out = np.repeat(np.eye(4)[None], len(cov), axis=0)
+    out[:, :3, :3] = rot
+    out[:, :3, 3] = b_mean - rot @ source.mean(axis=0)
+    return out

@@ -38,6 +38,7 @@ from dexflow.hands.spec import check_yaml_file
 __all__ = [
     "DATA_GENERATORS",
     "ENGINES",
+    "TRACK_HOLDS",
     "ContactParams",
     "ConvexParams",
     "DataParams",
@@ -712,6 +713,10 @@ def _validate_replay(r: ReplayParams) -> None:
              r.friction)  # fmt: skip
 
 
+# What stage track's grip schedules do from the lift on (TrackParams.schedule_holds).
+TRACK_HOLDS = ("follow", "fingers", "grasp")
+
+
 @dataclass
 @conf_defaults("track/default.yaml")
 class TrackParams:
@@ -730,8 +735,11 @@ class TrackParams:
         schedule_ramps: ... frames the press ramps in over, ...
         schedule_leads: ... ending this many frames before the lift, ...
         schedule_backoffs: ... the fingers held this times ``squeeze_m`` back until then, ...
-        schedule_holds: ... and from the lift on the fingers' targets kept as they are there
-            (true) or following the refined trajectory (false).
+        schedule_holds: ... and from the lift on (:data:`TRACK_HOLDS`): ``follow`` (the
+            targets follow the refined trajectory), ``fingers`` (the fingers' targets kept as
+            they are at the lift, the base following the refined trajectory) or ``grasp``
+            (the fingers kept so and the base moved with the human fingertips' rigid motion:
+            the grasp carried as one body, :func:`dexflow.sim.track.grasp_carry`).
         mpc: Run the receding-horizon search around the best schedule.
         horizon_frames: Frames each candidate is rolled out ahead.
         samples: Random perturbations of the plan per round and frame.
@@ -754,7 +762,7 @@ class TrackParams:
     schedule_ramps: list[int]
     schedule_leads: list[int]
     schedule_backoffs: list[float]
-    schedule_holds: list[bool]
+    schedule_holds: list[str]
     mpc: bool
     horizon_frames: int
     samples: int
@@ -779,8 +787,10 @@ def _validate_track(t: TrackParams, methods: dict) -> None:
     for key in ("samples", "noise_base_m", "noise_base_rad", "noise_finger_rad", "prior_weight",
                 "rotation_weight_m_per_rad", "contact_weight", "squeeze_reach_m"):  # fmt: skip
         _require(getattr(t, key) >= 0, f"track.{key}", ">= 0", getattr(t, key))
-    for key in ("schedule_scales", "schedule_ramps", "schedule_leads", "schedule_backoffs",
-                "schedule_holds"):  # fmt: skip
+    holds = list(t.schedule_holds)
+    _require(bool(holds) and set(holds) <= set(TRACK_HOLDS), "track.schedule_holds",
+             f"a non-empty list of {list(TRACK_HOLDS)}", holds)  # fmt: skip
+    for key in ("schedule_scales", "schedule_ramps", "schedule_leads", "schedule_backoffs"):
         values = list(getattr(t, key))
         _require(bool(values) and min(values) >= 0, f"track.{key}", "a non-empty list, >= 0",
                  values)  # fmt: skip

@@ -134,6 +134,7 @@ def test_sweep_override_reaches_params(tmp_path):
         ("demo: {fps: 0}", "demo.fps"),
         ("demo: {min_frames: 100, max_frames: 50}", "min_frames"),
         ("scale_align: {surface_samples: many}", "surface_samples"),
+        ("track: {schedule_holds: [true]}", r"track.schedule_holds: expected .*'grasp'"),
     ],
 )
 def test_bad_params_name_the_key(tmp_path, text, words):

@@ -9,11 +9,16 @@ import dataclasses
 
 import numpy as np
 import pytest
+import torch
 import trimesh
+from scipy.spatial.transform import Rotation
 
+from dexflow.geometry import transform_points
 from dexflow.hands import load_hand
+from dexflow.hands.robot import base_transform
 from dexflow.objects.convex import write_convex_obj
 from dexflow.params import ReplayParams, TrackParams
+from dexflow.sim.carry import grasp_carry
 from dexflow.sim.replay_criteria import lift_frame, sequence_result
 from dexflow.sim.replay_world import ReplayWorld
 from dexflow.sim.track import grip_parts, grip_schedule, guided_targets, track_sequence
@@ -124,7 +129,7 @@ def test_grip_ramps_in_before_the_lift():
 
 
 def test_a_held_grasp_keeps_the_fingers_targets_of_the_lift(scene):
-    """With ``hold`` the fingers' targets from the lift to the window's end are those at the
+    """With the hold ``fingers`` the fingers' targets from the lift to the window's end are those at the
     lift, whatever the refined fingers do meanwhile (here: open wide mid-carry); before the
     lift and for the base the schedule is the one without the hold. The held schedule carries
     the box."""
@@ -135,7 +140,7 @@ def test_a_held_grasp_keeps_the_fingers_targets_of_the_lift(scene):
     parts = grip_parts(world, jittery, poses, window, fingers, SETTINGS)
     held, followed = (
         guided_targets(jittery, parts, poses, window, (1.0, 2, 0, 0.0, hold))
-        for hold in (True, False)
+        for hold in ("fingers", "follow")
     )
     lift = lift_frame(poses, window)
     assert APPROACH + HOLD < lift < mid
@@ -148,3 +153,68 @@ def test_a_held_grasp_keeps_the_fingers_targets_of_the_lift(scene):
     assert np.abs(followed[mid, 6:] - held[mid, 6:]).max() > 0.1  # it did not follow the opening
     _, result = _score(world, held, poses, window)
     assert result["success"] and result["carried"]
+
+
+def _turning_tips(frames: int, lift: int) -> tuple[np.ndarray, np.ndarray]:
+    """Five fingertips held still until ``lift``, then turned by 1.2 turns about a tilted axis
+    through a point beside them and raised: (T, 4, 4) their motion since the lift and (T, 5, 3)
+    the fingertips."""
+    rng = np.random.default_rng(3)
+    grip = np.array([0.3, -0.1, 0.9]) + rng.normal(0.0, 0.03, (5, 3))
+    axis = np.array([0.2, 0.3, 1.0]) / np.linalg.norm([0.2, 0.3, 1.0])
+    turn = np.clip(np.arange(frames) - lift, 0, None) * (1.2 * 2 * np.pi / (frames - 1 - lift))
+    motion = np.repeat(np.eye(4)[None], frames, axis=0)
+    motion[:, :3, :3] = Rotation.from_rotvec(turn[:, None] * axis).as_matrix()
+    pivot = np.array([0.35, -0.05, 0.85])
+    motion[:, :3, 3] = pivot - motion[:, :3, :3] @ pivot
+    motion[:, 2, 3] += 0.002 * np.clip(np.arange(frames) - lift, 0, None)
+    return motion, transform_points(motion, grip)
+
+
+def test_a_carried_grasp_moves_the_base_with_the_fingertips():
+    """``grasp_carry`` moves the base from the lift on exactly as the fingertips move (no
+    smoothing), turning more than a whole turn without a jump of the base's Euler targets, and
+    fills an unobserved frame from its neighbours; before the lift it is the prior's base."""
+    frames, lift = 40, 10
+    poses = np.repeat(np.eye(4)[None], frames, axis=0)
+    poses[lift:, 2, 3] += 0.02  # the recorded lift at frame 10
+    window = (0, 5, frames - 1)
+    motion, tips = _turning_tips(frames, lift)
+    tips[20] = np.nan  # not observed: taken from frames 19 and 21
+    base = np.zeros((frames, 6))
+    base[:, :3] = [0.25, -0.15, 1.0]
+    base[:, 3:] = [0.4, -0.3, 2.9]
+    base[:, 0] += np.linspace(0.0, 0.05, frames)  # the prior's wrist drifts: not followed
+    carried = grasp_carry(base, tips, poses, window, smooth_frames=0.0)
+    np.testing.assert_array_equal(carried[:lift], base[:lift])
+    np.testing.assert_allclose(carried[lift], base[lift], atol=1e-12)
+    got = base_transform(torch.as_tensor(carried)).numpy()
+    lifted = base_transform(torch.as_tensor(base[lift : lift + 1])).numpy()[0]
+    expected = motion @ lifted
+    observed = np.arange(lift, frames) != 20
+    frames_ok = np.arange(lift, frames)[observed]
+    np.testing.assert_allclose(got[frames_ok], expected[frames_ok], atol=1e-9)
+    assert np.abs(got[20] - expected[20]).max() < 0.01  # interpolated between its neighbours
+    assert np.abs(np.diff(carried[:, 3:], axis=0)).max() < 0.5  # rad per frame: no wrap
+    smoothed = grasp_carry(base, tips, poses, window)
+    np.testing.assert_allclose(smoothed[lift], base[lift], atol=1e-12)  # starts at the lift
+    assert np.abs(smoothed[lift + 10 :] - carried[lift + 10 :]).max() < 0.05
+
+
+def test_a_carried_grasp_keeps_the_fingers_and_takes_the_carried_base(scene):
+    """The hold ``grasp``: the fingers' targets as with ``fingers``, the base's from the lift on
+    the carried ones (before the lift the prior's)."""
+    world, q, poses, fingers, window = scene
+    parts = grip_parts(world, q, poses, window, fingers, SETTINGS)
+    lift = lift_frame(poses, window)
+    carried = q[:, :6].copy()
+    carried[lift:, 0] += 0.01
+    held, grasped = (
+        guided_targets(q, parts, poses, window, (1.0, 2, 0, 0.0, hold), carried)
+        for hold in ("fingers", "grasp")
+    )
+    np.testing.assert_array_equal(grasped[:, 6:], held[:, 6:])
+    np.testing.assert_array_equal(grasped[:lift, :6], held[:lift, :6])
+    np.testing.assert_array_equal(grasped[lift:, :6], carried[lift:])
+    with pytest.raises(ValueError, match="hold"):
+        guided_targets(q, parts, poses, window, (1.0, 2, 0, 0.0, True), carried)

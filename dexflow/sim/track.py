@@ -78,7 +78,8 @@ import itertools
 
 import numpy as np
 
-from dexflow.params import TrackParams
+from dexflow.params import TRACK_HOLDS, TrackParams
+from dexflow.sim.carry import grasp_carry
 from dexflow.sim.replay_criteria import lift_frame, replay_errors, sequence_result
 from dexflow.sim.replay_world import ReplayWorld
 
@@ -233,7 +234,8 @@ def guided_targets(
     parts: tuple[np.ndarray, np.ndarray],
     poses: np.ndarray,
     window: tuple[int, int, int],
-    schedule: tuple[float, int, int, float, bool],
+    schedule: tuple[float, int, int, float, str],
+    carried: np.ndarray | None = None,
 ) -> np.ndarray:
     """(T, dof) the contact-guided prior: fingers backed off during the approach, closed
     together into the object at the grasp, and (``hold``) kept so while it is carried.
@@ -241,9 +243,13 @@ def guided_targets(
     With ``schedule = (scale, ramp, lead, backoff, hold)``, ``a(t)`` the grip schedule
     (:func:`grip_schedule` of ``ramp`` and ``lead``) and ``(squeeze, release)`` the ``parts``
     (:func:`grip_parts`), the targets are ``prior + scale a squeeze + b release``,
-    ``b(t) = backoff (1 - a(t))`` before the lift, 0 from it; with ``hold`` the finger
-    targets (not the base's) from the lift to the window's end are those at the lift.
+    ``b(t) = backoff (1 - a(t))`` before the lift, 0 from it. From the lift to the window's
+    end, by ``hold``: ``"follow"`` leaves them so; ``"fingers"`` keeps the finger targets (not
+    the base's) as they are at the lift; ``"grasp"`` keeps them so and takes the base's from
+    ``carried (T, 6)`` (:func:`dexflow.sim.carry.grasp_carry`: the grasp moved as one body).
     """
+    if hold_of(schedule) not in TRACK_HOLDS:
+        raise ValueError(f"hold {schedule[-1]!r}: expected one of {TRACK_HOLDS}")
     full, release = parts
     scale, ramp, lead, backoff, hold = schedule
     share = grip_schedule(poses, window, int(ramp), int(lead))
@@ -251,9 +257,19 @@ def guided_targets(
     lift = lift_frame(poses, window)
     back[lift:] = 0.0
     out = prior + scale * share[:, None] * full + back[:, None] * release
-    if hold:
-        out[lift : window[2] + 1, 6:] = out[lift, 6:]
+    carry = slice(lift, window[2] + 1)
+    if hold != "follow":
+        out[carry, 6:] = out[lift, 6:]
+    if hold == "grasp":
+        if carried is None:
+            raise ValueError("hold 'grasp' needs the carried base (grasp_carry)")
+        out[carry, :6] = carried[carry]
     return out
+
+
+def hold_of(schedule: tuple) -> str:
+    """The ``hold`` of a grip schedule ``(scale, ramp, lead, backoff, hold)``."""
+    return schedule[-1]
 
 
 def _replay_rank(
@@ -293,6 +309,7 @@ def track_sequence(
     settings: TrackParams,
     rng: np.random.Generator,
     clamp=None,
+    tips: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """Search the targets under which the replay carries the object (module docs).
 
@@ -309,6 +326,8 @@ def track_sequence(
         rng: The random generator of the perturbations.
         clamp: Maps (N, dof) targets into the hand's joint limits and couplings (None: as
             they are).
+        tips: (T, K, 3) the human fingertips (NaN where not observed), for the schedules
+            that carry the grasp as one body (``hold`` ``"grasp"``; None: those are skipped).
 
     Returns:
         ``q`` (T, dof) the simulated hand's states in the window (the prior elsewhere),
@@ -322,13 +341,16 @@ def track_sequence(
     prior[:, 3:6] = np.unwrap(prior[:, 3:6], axis=0)
     poses = np.asarray(poses, dtype=float)
     parts = grip_parts(world, prior, poses, window, fingers, s)
+    carried = None if tips is None else grasp_carry(prior[:, :6], tips, poses, window)
     grid = itertools.product(
         s.schedule_scales, s.schedule_ramps, s.schedule_leads, s.schedule_backoffs,
         s.schedule_holds,
     )  # fmt: skip
     best_rank, guided, replayed = None, prior, {}
     for schedule in grid:
-        targets = guided_targets(prior, parts, poses, window, schedule)
+        if hold_of(schedule) == "grasp" and carried is None:
+            continue
+        targets = guided_targets(prior, parts, poses, window, schedule, carried)
         rank, result = _replay_rank(world, targets, poses, fps, window, s)
         if best_rank is None or rank < best_rank:  # the first of equals: deterministic
             best_rank, guided, replayed = rank, targets, result

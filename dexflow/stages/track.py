@@ -81,7 +81,8 @@ def run_track(params: PipelineParams, layout: Layout, label: str = "refine") -> 
         f"track {label}",
         {"hand": params.hand, "replay": params.replay, "track": params.track,
          "seed": params.seed},
-        inputs=(layout.trajectory(label), layout.contact, layout.scale_align, layout.hand_files),
+        inputs=(layout.trajectory(label), layout.retarget("dexflow"), layout.contact,
+                layout.scale_align, layout.hand_files),
     )  # fmt: skip
     files = stage.start()
     if files:  # a hand MuJoCo cannot load fails the stage once (exit 2), not every sequence
@@ -105,10 +106,14 @@ def run_track(params: PipelineParams, layout: Layout, label: str = "refine") -> 
             return {**entry, "not_tracked_reason": reason, "frames": 0}
         frames = (window.start, window.first_contact, window.end)
         rng = np.random.default_rng([int(params.seed), zlib.crc32(path.stem.encode())])
+        human = read_trajectory(layout.retarget("dexflow").sequence(path), hand.joint_names)
+        tips = human["keypoints_human"][:, hand.fingertip_keypoints]  # what fingertip error uses
+        tips = np.where(human["observed"].astype(bool)[:, None, None], tips, np.nan)
         begin = time.process_time()
         result = track_sequence(
-            world, q, seq.obj_pose, seq.fps, frames, found.final, settings, rng, _clamp(hand)
-        )
+            world, q, seq.obj_pose, seq.fps, frames, found.final, settings, rng, _clamp(hand),
+            tips,
+        )  # fmt: skip
         seconds = time.process_time() - begin
         scored = result["replayed"]  # the replay of its targets, as stage replay's
         carry = np.arange(lift_frame(seq.obj_pose, frames), window.end + 1)
