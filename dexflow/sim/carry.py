@@ -81,11 +81,12 @@ def grasp_carry(
     end, the base at the lift moved by the human fingertips' rigid motion since then; ``base
     (T, 6)`` elsewhere.
 
-    A human grasp carries the object as a rigid constellation (on 28 real DexYCB captures the
-    five fingertips keep their shape during the carry to 4.4 mm, Procrustes residual), while the
-    wrist turns under it and the recorded object pose slides against it: fingers held as they
-    are at the lift on a base that follows the wrist miss the fingertips by centimetres (41 mm
-    mid-carry); on a base moved with the constellation by 9 mm. The motion of each observed
+    A human grasp carries the object nearly as a rigid constellation (on 28 real DexYCB
+    captures, Shadow's scale, the five fingertips keep their shape at the lift to 8 mm during
+    the carry: the residual of the fit below), while the wrist turns under it and the recorded
+    object pose slides against it: fingers held as they are at the lift on a base that
+    follows the wrist miss the fingertips by 41 mm during the carry, on a base moved with the
+    constellation by 9 mm (refine: 5 mm). The motion of each observed
     frame ``t`` is the least-squares rigid transform ``M(t)`` taking the fingertips at the
     lift to those at ``t`` (:func:`dexflow.geometry.rigid_fit`; the first observed carry frame
     stands in for an unobserved lift); unobserved frames take the motion of the nearest

@@ -15,12 +15,19 @@ steps, each scored in the physics:
    with ``scale`` times that push, ramped in over ``ramp`` frames ending ``lead`` frames before
    the **lift** (the first frame after the first contact where the recorded object is 1 cm from
    where it was then: fingers closing on an object at rest shove it), holds them ``backoff``
-   times the pull back from the object until then and, with ``hold``, keeps the fingers'
-   targets from the lift on as they are at the lift (:func:`guided_targets`): the grasp is
-   held as formed. A refined trajectory's fingers keep moving against the recorded object
-   while it is carried, because the recorded object turns against the hand (annotation jitter
-   of a tenth of a radian per frame, and real regrasps): on the real captures the fingers
-   open and close by up to 2-4 cm mid-carry, and a grasp that follows them lets go. Every
+   times the pull back from the object until then and, from the lift on, by ``hold``
+   (:func:`guided_targets`): lets the targets follow the refined trajectory (``follow``),
+   keeps the fingers' targets as they are at the lift (``fingers``: the grasp held as formed)
+   or keeps them so and moves the base with the human fingertips' rigid motion (``grasp``:
+   the grasp carried as one body, :func:`dexflow.sim.carry.grasp_carry`). A refined
+   trajectory's fingers keep moving against the recorded object while it is carried, because
+   the recorded object turns against the hand (annotation jitter of a tenth of a radian per
+   frame, and real regrasps): on the real captures the fingers open and close by up to 2-4 cm
+   mid-carry, and a grasp that follows them lets go. Held fingers on the refined base miss the
+   human's fingertips by centimetres (the wrist turns under the grasp); carried as one body
+   they would miss them by millimetres, but the hand then moves as fast as the human's
+   fingertips, whose lift accelerates to 0.5-0.8 m/s within a frame or two, and the simulated
+   grip flings or drops the object there: off by default (measured in docs/method.md). Every
    schedule of the grid ``schedule_scales x schedule_ramps x schedule_leads x
    schedule_backoffs x schedule_holds`` is replayed whole; the best by the replay's own
    criteria (success, then carried, then the mean object error) is the search's starting
