@@ -739,7 +739,7 @@ class TrackParams:
             targets follow the refined trajectory), ``fingers`` (the fingers' targets kept as
             they are at the lift, the base following the refined trajectory) or ``grasp``
             (the fingers kept so and the base moved with the human fingertips' rigid motion:
-            the grasp carried as one body, :func:`dexflow.sim.track.grasp_carry`).
+            the grasp carried as one body, :func:`dexflow.sim.carry.grasp_carry`).
         mpc: Run the receding-horizon search around the best schedule.
         horizon_frames: Frames each candidate is rolled out ahead.
         samples: Random perturbations of the plan per round and frame.

@@ -218,3 +218,6 @@ def test_a_carried_grasp_keeps_the_fingers_and_takes_the_carried_base(scene):
     np.testing.assert_array_equal(grasped[lift:, :6], carried[lift:])
     with pytest.raises(ValueError, match="hold"):
         guided_targets(q, parts, poses, window, (1.0, 2, 0, 0.0, True), carried)
+    grasp_only = dataclasses.replace(SETTINGS, schedule_holds=["grasp"])
+    with pytest.raises(ValueError, match="fingertips"):  # the grasp moves with the human's
+        track_sequence(world, q, poses, FPS, window, fingers, grasp_only, np.random.default_rng(0))

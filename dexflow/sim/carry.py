@@ -86,7 +86,7 @@ def grasp_carry(
     the carry: the residual of the fit below), while the wrist turns under it and the recorded
     object pose slides against it: fingers held as they are at the lift on a base that
     follows the wrist miss the fingertips by 41 mm during the carry, on a base moved with the
-    constellation by 9 mm (refine: 5 mm). The motion of each observed
+    constellation by 10 mm (refine: 5 mm). The motion of each observed
     frame ``t`` is the least-squares rigid transform ``M(t)`` taking the fingertips at the
     lift to those at ``t`` (:func:`dexflow.geometry.rigid_fit`; the first observed carry frame
     stands in for an unobserved lift); unobserved frames take the motion of the nearest

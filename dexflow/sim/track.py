@@ -256,10 +256,10 @@ def guided_targets(
     the base's) as they are at the lift; ``"grasp"`` keeps them so and takes the base's from
     ``carried (T, 6)`` (:func:`dexflow.sim.carry.grasp_carry`: the grasp moved as one body).
     """
-    if hold_of(schedule) not in TRACK_HOLDS:
-        raise ValueError(f"hold {schedule[-1]!r}: expected one of {TRACK_HOLDS}")
     full, release = parts
     scale, ramp, lead, backoff, hold = schedule
+    if hold not in TRACK_HOLDS:
+        raise ValueError(f"hold {hold!r}: expected one of {TRACK_HOLDS}")
     share = grip_schedule(poses, window, int(ramp), int(lead))
     back = backoff * (1.0 - share)
     lift = lift_frame(poses, window)
@@ -273,11 +273,6 @@ def guided_targets(
             raise ValueError("hold 'grasp' needs the carried base (grasp_carry)")
         out[carry, :6] = carried[carry]
     return out
-
-
-def hold_of(schedule: tuple) -> str:
-    """The ``hold`` of a grip schedule ``(scale, ramp, lead, backoff, hold)``."""
-    return schedule[-1]
 
 
 def _replay_rank(
@@ -335,7 +330,7 @@ def track_sequence(
         clamp: Maps (N, dof) targets into the hand's joint limits and couplings (None: as
             they are).
         tips: (T, K, 3) the human fingertips (NaN where not observed), for the schedules
-            that carry the grasp as one body (``hold`` ``"grasp"``; None: those are skipped).
+            that carry the grasp as one body (``hold`` ``"grasp"``; needed only for those).
 
     Returns:
         ``q`` (T, dof) the simulated hand's states in the window (the prior elsewhere),
@@ -349,15 +344,17 @@ def track_sequence(
     prior[:, 3:6] = np.unwrap(prior[:, 3:6], axis=0)
     poses = np.asarray(poses, dtype=float)
     parts = grip_parts(world, prior, poses, window, fingers, s)
-    carried = None if tips is None else grasp_carry(prior[:, :6], tips, poses, window)
+    carried = None
+    if "grasp" in s.schedule_holds:
+        if tips is None:
+            raise ValueError("hold 'grasp' needs the human fingertips (tips)")
+        carried = grasp_carry(prior[:, :6], tips, poses, window)
     grid = itertools.product(
         s.schedule_scales, s.schedule_ramps, s.schedule_leads, s.schedule_backoffs,
         s.schedule_holds,
     )  # fmt: skip
     best_rank, guided, replayed = None, prior, {}
     for schedule in grid:
-        if hold_of(schedule) == "grasp" and carried is None:
-            continue
         targets = guided_targets(prior, parts, poses, window, schedule, carried)
         rank, result = _replay_rank(world, targets, poses, fps, window, s)
         if best_rank is None or rank < best_rank:  # the first of equals: deterministic
