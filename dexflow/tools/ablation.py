@@ -183,6 +183,7 @@ METRIC_LABELS = {
     "rms_acc": ("RMS acc", "rad/s²", False),
     "pd_mm": ("PD", "mm", False),
     "pd_max_mm": ("PD max", "mm", False),
+    "pd_own_object_mm": ("PD own object", "mm", False),
     "cd_mm": ("CD", "mm", False),
     "spd_mm": ("SPD", "mm", False),
     "fvr": ("FVR", "", False),
