@@ -740,6 +740,8 @@ class TrackParams:
             they are at the lift, the base following the refined trajectory) or ``grasp``
             (the fingers kept so and the base moved with the human fingertips' rigid motion:
             the grasp carried as one body, :func:`dexflow.sim.carry.grasp_carry`).
+        carry_smooth_frames: The hold ``grasp``: the fingertips' rigid motion smoothed by a
+            Gaussian of this many frames (0: as fitted).
         mpc: Run the receding-horizon search around the best schedule.
         horizon_frames: Frames each candidate is rolled out ahead.
         samples: Random perturbations of the plan per round and frame.
@@ -763,6 +765,7 @@ class TrackParams:
     schedule_leads: list[int]
     schedule_backoffs: list[float]
     schedule_holds: list[str]
+    carry_smooth_frames: float
     mpc: bool
     horizon_frames: int
     samples: int
@@ -785,7 +788,8 @@ def _validate_track(t: TrackParams, methods: dict) -> None:
     for key in ("horizon_frames", "iterations"):
         _require(getattr(t, key) >= 1, f"track.{key}", ">= 1", getattr(t, key))
     for key in ("samples", "noise_base_m", "noise_base_rad", "noise_finger_rad", "prior_weight",
-                "rotation_weight_m_per_rad", "contact_weight", "squeeze_reach_m"):  # fmt: skip
+                "rotation_weight_m_per_rad", "contact_weight", "squeeze_reach_m",
+                "carry_smooth_frames"):  # fmt: skip
         _require(getattr(t, key) >= 0, f"track.{key}", ">= 0", getattr(t, key))
     holds = list(t.schedule_holds)
     _require(bool(holds) and set(holds) <= set(TRACK_HOLDS), "track.schedule_holds",

@@ -196,7 +196,7 @@ def test_a_carried_grasp_moves_the_base_with_the_fingertips():
     np.testing.assert_allclose(got[frames_ok], expected[frames_ok], atol=1e-9)
     assert np.abs(got[20] - expected[20]).max() < 0.01  # interpolated between its neighbours
     assert np.abs(np.diff(carried[:, 3:], axis=0)).max() < 0.5  # rad per frame: no wrap
-    smoothed = grasp_carry(base, tips, poses, window)
+    smoothed = grasp_carry(base, tips, poses, window, smooth_frames=2.0)
     np.testing.assert_allclose(smoothed[lift], base[lift], atol=1e-12)  # starts at the lift
     assert np.abs(smoothed[lift + 10 :] - carried[lift + 10 :]).max() < 0.05
 

@@ -18,9 +18,7 @@ from dexflow.geometry import rigid_fit
 from dexflow.hands.robot import base_transform
 from dexflow.sim.replay_criteria import lift_frame
 
-__all__ = ["CARRY_SMOOTH_FRAMES", "grasp_carry"]
-
-CARRY_SMOOTH_FRAMES = 2.0  # frames: the Gaussian smoothing of the grasp's carried motion
+__all__ = ["grasp_carry"]
 
 
 def _euler_near(rotations: np.ndarray, before: np.ndarray) -> np.ndarray:
@@ -75,7 +73,7 @@ def grasp_carry(
     tips: np.ndarray,
     poses: np.ndarray,
     window: tuple[int, int, int],
-    smooth_frames: float = CARRY_SMOOTH_FRAMES,
+    smooth_frames: float,
 ) -> np.ndarray:
     """(T, 6) the base's targets of a grasp carried as one body: from the lift to the window's
     end, the base at the lift moved by the human fingertips' rigid motion since then; ``base

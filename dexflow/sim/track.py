@@ -348,7 +348,7 @@ def track_sequence(
     if "grasp" in s.schedule_holds:
         if tips is None:
             raise ValueError("hold 'grasp' needs the human fingertips (tips)")
-        carried = grasp_carry(prior[:, :6], tips, poses, window)
+        carried = grasp_carry(prior[:, :6], tips, poses, window, s.carry_smooth_frames)
     grid = itertools.product(
         s.schedule_scales, s.schedule_ramps, s.schedule_leads, s.schedule_backoffs,
         s.schedule_holds,
