@@ -27,8 +27,9 @@ steps, each scored in the physics:
    human's fingertips by centimetres (the wrist turns under the grasp); carried as one body
    they would miss them by millimetres, but the hand then moves as fast as the human's
    fingertips, whose lift accelerates to 0.5-0.8 m/s within a frame or two, and the simulated
-   grip flings or drops the object there (Shadow; Allegro gains one capture of 28 with it):
-   off by default (measured in docs/method.md). Every
+   grip flings or drops the object there unless the motion is smoothed over several frames
+   (``carry_smooth_frames``; with 8, two more captures of 28 carried, with either hand, at
+   1-4 mm more fingertip error): off by default (measured in docs/method.md). Every
    schedule of the grid ``schedule_scales x schedule_ramps x schedule_leads x
    schedule_backoffs x schedule_holds`` is replayed whole; the best by the replay's own
    criteria (success, then carried, then the mean object error) is the search's starting
