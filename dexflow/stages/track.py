@@ -108,9 +108,11 @@ def run_track(params: PipelineParams, layout: Layout, label: str = "refine") -> 
             return {**entry, "not_tracked_reason": reason, "frames": 0}
         frames = (window.start, window.first_contact, window.end)
         rng = np.random.default_rng([int(params.seed), zlib.crc32(path.stem.encode())])
-        human = read_trajectory(layout.retarget("dexflow").sequence(path), hand.joint_names)
-        tips = human["keypoints_human"][:, hand.fingertip_keypoints]  # what fingertip error uses
-        tips = np.where(human["observed"].astype(bool)[:, None, None], tips, np.nan)
+        tips = None  # the human fingertips: only the hold "grasp" follows them
+        if "grasp" in settings.schedule_holds:
+            human = read_trajectory(layout.retarget("dexflow").sequence(path), hand.joint_names)
+            tips = human["keypoints_human"][:, hand.fingertip_keypoints]  # as fingertip error
+            tips = np.where(human["observed"].astype(bool)[:, None, None], tips, np.nan)
         begin = time.process_time()
         result = track_sequence(
             world, q, seq.obj_pose, seq.fps, frames, found.final, settings, rng, _clamp(hand),
