@@ -753,6 +753,9 @@ class TrackParams:
             (base rotation counted 0.1 m/rad, the fingers' mean 0.05 m/rad).
         rotation_weight_m_per_rad: Object rotation error counted as this many metres per rad.
         contact_weight: Cost (m) of a frame where none of stage contact's fingers touch.
+        tip_weight: Cost per metre the simulated fingertips are from the refined trajectory's
+            (mean over fingertips and frames), in the search's rollouts and in the ranking of
+            replays that are equal in success and carrying.
         object_guidance: Candidates with the base shifted by the object's position error.
     """
 
@@ -776,6 +779,7 @@ class TrackParams:
     prior_weight: float
     rotation_weight_m_per_rad: float
     contact_weight: float
+    tip_weight: float
     object_guidance: bool
 
     @property
@@ -788,7 +792,7 @@ def _validate_track(t: TrackParams, methods: dict) -> None:
     for key in ("horizon_frames", "iterations"):
         _require(getattr(t, key) >= 1, f"track.{key}", ">= 1", getattr(t, key))
     for key in ("samples", "noise_base_m", "noise_base_rad", "noise_finger_rad", "prior_weight",
-                "rotation_weight_m_per_rad", "contact_weight", "squeeze_reach_m",
+                "rotation_weight_m_per_rad", "contact_weight", "tip_weight", "squeeze_reach_m",
                 "carry_smooth_frames"):  # fmt: skip
         _require(getattr(t, key) >= 0, f"track.{key}", ">= 0", getattr(t, key))
     holds = list(t.schedule_holds)

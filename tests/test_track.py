@@ -21,7 +21,13 @@ from dexflow.params import ReplayParams, TrackParams
 from dexflow.sim.carry import grasp_carry
 from dexflow.sim.replay_criteria import lift_frame, sequence_result
 from dexflow.sim.replay_world import ReplayWorld
-from dexflow.sim.track import grip_parts, grip_schedule, guided_targets, track_sequence
+from dexflow.sim.track import (
+    fingertips,
+    grip_parts,
+    grip_schedule,
+    guided_targets,
+    track_sequence,
+)
 
 from .test_hands import _gripper
 from .test_replay import BOX, gripper_over_box
@@ -221,3 +227,22 @@ def test_a_carried_grasp_keeps_the_fingers_and_takes_the_carried_base(scene):
     grasp_only = dataclasses.replace(SETTINGS, schedule_holds=["grasp"])
     with pytest.raises(ValueError, match="fingertips"):  # the grasp moves with the human's
         track_sequence(world, q, poses, FPS, window, fingers, grasp_only, np.random.default_rng(0))
+
+
+def test_the_fingertip_term_keeps_the_tips_near_the_refined_ones(scene):
+    """With ``tip_weight`` the search prefers, among targets that carry the box, those whose
+    simulated fingertips stay nearer the refined trajectory's: still carried, tips nearer."""
+    world, q, poses, fingers, window = scene
+    hand = world.hand
+    start, _, end = window
+    goal = fingertips(hand, q[start : end + 1])
+    near = {}
+    for weight in (0.0, 20.0):
+        settings = dataclasses.replace(SETTINGS, tip_weight=weight)
+        found = track_sequence(
+            world, q, poses, FPS, window, fingers, settings, np.random.default_rng(0)
+        )
+        assert found["replayed"]["success"], weight
+        tips = fingertips(hand, found["q"][start : end + 1])
+        near[weight] = np.linalg.norm(tips - goal, axis=-1).mean()
+    assert near[20.0] < near[0.0], near

@@ -317,7 +317,8 @@ class ReplayWorld(MujocoGraspWorld):
             targets: (T, dof) the finger targets (``q`` if None, e.g. :meth:`squeezed`).
 
         Returns:
-            The rows of :class:`~dexflow.io.artifacts.ReplayResult` (errors against ``poses``).
+            The rows of :class:`~dexflow.io.artifacts.ReplayResult` (errors against ``poses``)
+            and ``hand_q`` (N, dof), the simulated hand's states.
         """
         self._require_object("replay")
         start, _, end = window
@@ -346,6 +347,7 @@ class ReplayWorld(MujocoGraspWorld):
             "object_quat": quat,
             "base_error_m": np.linalg.norm(base[:, :3] - q[frames, :3], axis=1),
             "joint_error_rad": np.abs(joints - q[frames, 6:]).mean(axis=1),
+            "hand_q": hand,
         }
 
 
