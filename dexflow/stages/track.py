@@ -4,12 +4,12 @@ For every sequence the replay scores (:func:`dexflow.sim.replay_criteria.replay_
 contact, supported, no free fall), :func:`dexflow.sim.track.track_sequence` searches, in the
 replay's own MuJoCo scene, for the position targets under which the object follows its recorded
 path (contact-guided grip schedules, then a receding-horizon sampling search, the refined
-trajectory as the prior and the recorded object pose as the goal; :mod:`dexflow.sim.track`
-explains it; grip schedules with the hold ``grasp`` also follow the human fingertips, read
-from stage retarget's ``keypoints_human`` on its observed frames). The output is a trajectory
-like any other (``data/track/sequences/<name>.npz``, the fourth method ``track`` beside
-baseline, retarget and refine): ``q`` is where the simulated
-hand is, ``targets`` the position targets that put it there (stage replay replays those),
+trajectory as the prior, its fingertips and the recorded object pose as the goals;
+:mod:`dexflow.sim.track` explains it; grip schedules with the hold ``grasp`` also follow the
+human fingertips, read from stage retarget's ``keypoints_human`` on its observed frames). The
+output is a trajectory like any other (``data/track/sequences/<name>.npz``, the fourth method
+``track`` beside baseline, retarget and refine): ``q`` is where the simulated hand is,
+``targets`` the position targets that put it there (stage replay replays those),
 ``object_pose7`` the simulated object; outside the replay window both are the refined
 trajectory, and sequences the replay does not score are passed through unchanged (``tracked``
 false, ``not_tracked_reason`` the replay's reason).

@@ -149,6 +149,7 @@ SUITES: dict[str, tuple[Question, ...]] = {
             "What does each part of the tracking search buy?",
             (
                 "track_no_prior",
+                "track_no_tip_term",
                 "track_few_samples",
                 "track_short_horizon",
                 "track_one_schedule",
