@@ -139,7 +139,7 @@ class _Rollouts:
         first: int,
         fingers: np.ndarray,
         settings: TrackParams,
-        tips: np.ndarray,
+        tips: np.ndarray | None,
     ) -> None:
         self.world, self.prior, self.fps, self.s = world, prior, fps, settings
         self.tips = tips
@@ -327,10 +327,12 @@ def _replay_rank(
     fps: float,
     window: tuple[int, int, int],
     s: TrackParams,
-    tips: np.ndarray,
+    tips: np.ndarray | None,
 ) -> tuple[tuple[bool, bool, float], dict]:
     """The rank of a replay of ``targets`` (lower is better: by the replay's own criteria,
-    success, then carried, then the mean object pose error) and the replay's summary entry
+    success, then carried, then the mean object pose error plus ``tip_weight`` times the
+    simulated fingertips' mean distance from ``tips (T, F, 3)``, the refined trajectory's, over
+    the window) and the replay's summary entry
     (:func:`~dexflow.sim.replay_criteria.sequence_result`)."""
     rows = world.replay(targets, poses, fps, window)
     r = sequence_result(rows, window[1], poses, fps, world.replay_params)
