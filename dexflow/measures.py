@@ -28,6 +28,7 @@ __all__ = [
     "contact_distance",
     "finger_minimum",
     "fingertip_speeds",
+    "fingertips",
     "finite_mean",
     "flicker_reduction",
     "frame_chunks",
@@ -114,6 +115,19 @@ def rms_acceleration(q: np.ndarray, fps: float) -> float:
         return float("nan")
     acc = np.diff(q, n=2, axis=0) * fps**2
     return float(np.sqrt(np.mean(acc**2)))
+
+
+def fingertips(hand: RobotHand, q: np.ndarray) -> np.ndarray:
+    """(..., F, 3) the world positions of the fingertips (``hand.fingertip_keypoints``, the
+    keypoints matched to the human's, as the fingertip error measures them) at ``q (..., dof)``,
+    by the hand's forward kinematics."""
+    q = np.asarray(q)
+    with torch.no_grad():
+        points = hand.keypoints(
+            torch.as_tensor(q.reshape(-1, q.shape[-1]), dtype=hand.dtype, device=hand.device)
+        )
+    tips = points[:, hand.fingertip_keypoints].cpu().numpy()
+    return tips.reshape(*q.shape[:-1], *tips.shape[1:])
 
 
 def fingertip_speeds(tips: np.ndarray, fps: float, mask: np.ndarray | None = None) -> np.ndarray:

@@ -16,13 +16,14 @@ from scipy.spatial.transform import Rotation
 from dexflow.geometry import transform_points
 from dexflow.hands import load_hand
 from dexflow.hands.robot import base_transform
+from dexflow.measures import fingertips
 from dexflow.objects.convex import write_convex_obj
 from dexflow.params import ReplayParams, TrackParams
 from dexflow.sim.carry import grasp_carry
 from dexflow.sim.grip import grip_parts, grip_schedule, guided_targets
 from dexflow.sim.replay_criteria import lift_frame, sequence_result
 from dexflow.sim.replay_world import ReplayWorld
-from dexflow.sim.track import fingertips, track_sequence
+from dexflow.sim.track import track_sequence
 
 from .test_hands import _gripper
 from .test_replay import BOX, gripper_over_box

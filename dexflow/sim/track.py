@@ -53,9 +53,9 @@ steps, each scored in the physics:
    ``prior_weight`` times the targets' distance from the grip schedule's (base translation in
    m, base rotation and the fingers' mean in rad times 0.1 and 0.05 m/rad: about how far a
    fingertip moves), and ``tip_weight`` times the mean distance (m) of the simulated hand's
-   fingertips from the refined trajectory's (:func:`fingertips`: the keypoints the fingertip
-   error measures). The search's result is kept only where its replay ranks above the
-   schedule's; else the schedule is the output.
+   fingertips from the refined trajectory's (:func:`dexflow.measures.fingertips`: the
+   keypoints the fingertip error measures). The search's result is kept only where its replay
+   ranks above the schedule's; else the schedule is the output.
 
 **Ranking** a replay (the grid's schedules, the search's result): success first, then carried,
 then the mean object error (position plus ``rotation_weight_m_per_rad`` times rotation) plus
@@ -100,13 +100,14 @@ import itertools
 
 import numpy as np
 
+from dexflow.measures import fingertips
 from dexflow.params import TrackParams
 from dexflow.sim.carry import grasp_carry
 from dexflow.sim.grip import grip_parts, guided_targets
 from dexflow.sim.replay_criteria import replay_errors, sequence_result
 from dexflow.sim.replay_world import ReplayWorld
 
-__all__ = ["fingertips", "track_sequence"]
+__all__ = ["track_sequence"]
 
 _BASE_ROT_LEVER_M = 0.1  # m/rad: the prior cost of a base rotation (palm to fingertip)
 _FINGER_LEVER_M = 0.05  # m/rad: the prior cost of a finger joint's rotation (a phalanx)
@@ -211,18 +212,6 @@ class _Rollouts:
         if s.tip_weight:
             total += s.tip_weight * _tip_distance(self.world.hand, states, self.tips[frames])
         return total
-
-
-def fingertips(hand, q: np.ndarray) -> np.ndarray:
-    """(..., F, 3) the fingertips (the keypoints matched to the human's) of ``q (..., dof)``,
-    by the hand's forward kinematics (the fingertip error's)."""
-    import torch
-
-    flat = np.asarray(q).reshape(-1, q.shape[-1])
-    with torch.no_grad():
-        points = hand.keypoints(torch.as_tensor(flat, dtype=hand.dtype, device=hand.device))
-    tips = points[:, hand.fingertip_keypoints].cpu().numpy()
-    return tips.reshape(*q.shape[:-1], *tips.shape[1:])
 
 
 def _tip_distance(hand, states: np.ndarray, goal: np.ndarray) -> np.ndarray:

@@ -135,6 +135,7 @@ from dexflow.io.layout import Layout
 from dexflow.io.sequence import load_sequence
 from dexflow.measures import (
     capped_contact_distance,
+    fingertips,
     finite_mean,
     frame_chunks,
     hand_object_depths,
@@ -329,20 +330,13 @@ def fingertip_targets(
     Returns:
         (T, tips, 3) targets of ``hand.fingertip_keypoints``.
     """
-    retargeted = _fingertips(hand, q_init)
+    retargeted = fingertips(hand, q_init)
     if not surface_tips:
         return retargeted
     corrected = surface_corrected_tips(
         np.asarray(human)[:, hand.fingertip_keypoints], obj_pose, sdf
     )
     return np.where(np.asarray(observed, dtype=bool)[:, None, None], corrected, retargeted)
-
-
-def _fingertips(hand: RobotHand, q: np.ndarray) -> np.ndarray:
-    """(T, tips, 3) world positions of ``hand.fingertip_keypoints`` at ``q (T, dof)``."""
-    with torch.no_grad():
-        keypoints = hand.keypoints(torch.as_tensor(q, dtype=hand.dtype))
-    return keypoints[:, hand.fingertip_keypoints].numpy()
 
 
 def refine_trajectory(
@@ -371,7 +365,7 @@ def refine_trajectory(
         refined q (T, dof), per-frame energies before and after (T,).
     """
     if tip_targets is None:
-        tip_targets = _fingertips(hand, q_init)
+        tip_targets = fingertips(hand, q_init)
     n, window = len(q_init), params.window_frames
     if window <= 0 or n <= window:
         return _refine_whole(hand, q_init, obj_pose, sdf, contact, cmap, params, tip_targets)
