@@ -11,15 +11,16 @@ steps, each scored in the physics:
    hand links within ``squeeze_reach_m`` of it are pushed ``squeeze_m`` into it at its recorded
    pose (a position servo presses only as hard as its target lies inside) and, before the
    grasp, pulled as far out (stage simulate's pregrasp and squeeze configurations,
-   :func:`dexflow.sim.grip.grip_parts`). A schedule ``(scale, ramp, lead, backoff, hold)`` closes the fingers
-   with ``scale`` times that push, ramped in over ``ramp`` frames ending ``lead`` frames before
-   the **lift** (the first frame after the first contact where the recorded object is 1 cm from
-   where it was then: fingers closing on an object at rest shove it), holds them ``backoff``
-   times the pull back from the object until then and, from the lift on, by ``hold``
-   (:func:`dexflow.sim.grip.guided_targets`): lets the targets follow the refined trajectory (``follow``),
-   keeps the fingers' targets as they are at the lift (``fingers``: the grasp held as formed)
-   or keeps them so and moves the base with the human fingertips' rigid motion (``grasp``:
-   the grasp carried as one body, :func:`dexflow.sim.carry.grasp_carry`). A refined
+   :func:`dexflow.sim.grip.grip_parts`). A schedule ``(scale, ramp, lead, backoff, hold)``
+   closes the fingers with ``scale`` times that push, ramped in over ``ramp`` frames ending
+   ``lead`` frames before the **lift** (the first frame after the first contact where the
+   recorded object is 1 cm from where it was then: fingers closing on an object at rest shove
+   it), holds them ``backoff`` times the pull back from the object until then and, from the
+   lift on, by ``hold`` (:func:`dexflow.sim.grip.guided_targets`): lets the targets follow the
+   refined trajectory (``follow``), keeps the fingers' targets as they are at the lift
+   (``fingers``: the grasp held as formed) or keeps them so and moves the base with the human
+   fingertips' rigid motion (``grasp``: the grasp carried as one body,
+   :func:`dexflow.sim.carry.grasp_carry`). A refined
    trajectory's fingers keep moving against the recorded object while it is carried, because
    the recorded object turns against the hand (annotation jitter of a tenth of a radian per
    frame, and real regrasps): on the real captures the fingers open and close by up to 2-4 cm
