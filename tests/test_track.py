@@ -23,7 +23,7 @@ from dexflow.sim.carry import grasp_carry
 from dexflow.sim.grip import grip_parts, grip_schedule, guided_targets
 from dexflow.sim.replay_criteria import lift_frame, sequence_result
 from dexflow.sim.replay_world import ReplayWorld
-from dexflow.sim.track import track_sequence
+from dexflow.sim.track import replay_rank, track_sequence
 
 from .test_hands import _gripper
 from .test_replay import BOX, gripper_over_box
@@ -242,3 +242,19 @@ def test_the_fingertip_term_keeps_the_tips_near_the_refined_ones(scene):
         tips = fingertips(hand, found["q"][start : end + 1])
         near[weight] = np.linalg.norm(tips - goal, axis=-1).mean()
     assert near[20.0] < near[0.0], near
+
+
+def test_success_ranks_first_and_carried_alone_does_not_outrank_the_fingertips():
+    """Among failures, a replay that drags the object along with the fingertips far from the
+    refined ones ranks below one that stays on them and drops it; any success ranks above
+    both."""
+    settings = dataclasses.replace(SETTINGS, tip_weight=20.0)
+
+    def replay(success, carried, position_m):
+        return {"success": success, "carried": carried, "position_error_mean_m": position_m,
+                "rotation_error_mean_rad": 0.3}  # fmt: skip
+
+    dragged, dropped = replay(False, True, 0.06), replay(False, False, 0.12)
+    assert replay_rank(dropped, 0.01, settings) < replay_rank(dragged, 0.05, settings)
+    succeeded = replay(True, True, 0.09)
+    assert replay_rank(succeeded, 0.05, settings) < replay_rank(dropped, 0.0, settings)

@@ -33,8 +33,8 @@ steps, each scored in the physics:
    1-4 mm more fingertip error): off by default (measured in docs/method.md). Every
    schedule of the grid ``schedule_scales x schedule_ramps x schedule_leads x
    schedule_backoffs x schedule_holds`` is replayed whole; the best by the replay's own
-   criteria (success, then carried, then the mean object error) is the search's starting
-   point.
+   criteria (:func:`replay_rank`: success, then the mean object error and the fingertips'
+   distance) is the search's starting point.
 2. **Receding horizon** (``mpc``). At frame ``t`` of the replay window the simulation state is
    saved; candidate targets for frames ``t+1 .. t+horizon_frames`` are each rolled out from it
    (``substeps`` physics steps per frame, exactly as the replay steps); the cheapest becomes the
@@ -58,15 +58,21 @@ steps, each scored in the physics:
    keypoints the fingertip error measures). The search's result is kept only where its replay
    ranks above the schedule's; else the schedule is the output.
 
-**Ranking** a replay (the grid's schedules, the search's result): success first, then carried,
-then the mean object error (position plus ``rotation_weight_m_per_rad`` times rotation) plus
-``tip_weight`` times the simulated fingertips' mean distance from the refined trajectory's over
-the window. Without the fingertip term the search kept whichever of equally successful targets
-tracked the object best, wherever the hand went: pressed fingers that bent round the object,
-a base dragged by it; the tracked hand's fingertips were 22 / 18 mm (Shadow / Allegro, 28
-real DexYCB captures) from the human's against the refined trajectory's 4.6 / 5.2. With
+**Ranking** a replay (the grid's schedules, the search's result, :func:`replay_rank`): success
+first, then the mean object error (position plus ``rotation_weight_m_per_rad`` times rotation)
+plus ``tip_weight`` times the simulated fingertips' mean distance from the refined trajectory's
+over the window. Without the fingertip term the search kept whichever of equally successful
+targets tracked the object best, wherever the hand went: pressed fingers that bent round the
+object, a base dragged by it; the tracked hand's fingertips were 22 / 18 mm (Shadow / Allegro,
+28 real DexYCB captures) from the human's against the refined trajectory's 4.6 / 5.2. With
 ``tip_weight`` 20 (a centimetre of fingertip distance costs as much as 20 cm of object error,
-so among equals the fingertips decide) they are 10 / 9 mm and as many objects are carried
+so among equals the fingertips decide) they are 10 / 9 mm and as many objects are carried.
+"Carried" (the replay's criterion that the object ends nearer its recording than left behind)
+is not a tier of its own: among failures it preferred a replay that drags the object along
+with fingers curled 5-6 cm from the human's over one that stays on the refined fingertips and
+drops it; neither is usable, and the second is the better record of the human's motion. As a
+tier it cost Shadow 1.2 mm of mean fingertip error on those captures (two failures at 36 and
+19 mm instead of 10 and 12), for two more objects carried and no more successes
 (docs/method.md has the measurements).
 
 What measured what, on the demo (Shadow, 24 sequences): the refined trajectory carries 8 %
@@ -108,7 +114,7 @@ from dexflow.sim.grip import grip_parts, guided_targets
 from dexflow.sim.replay_criteria import replay_errors, sequence_result
 from dexflow.sim.replay_world import ReplayWorld
 
-__all__ = ["track_sequence"]
+__all__ = ["replay_rank", "track_sequence"]
 
 _BASE_ROT_LEVER_M = 0.1  # m/rad: the prior cost of a base rotation (palm to fingertip)
 _FINGER_LEVER_M = 0.05  # m/rad: the prior cost of a finger joint's rotation (a phalanx)
@@ -235,6 +241,16 @@ def _noise(
     return ends[:, :1] + ramp * (ends[:, 1:] - ends[:, :1])
 
 
+def replay_rank(result: dict, tip_distance_m: float, s: TrackParams) -> tuple[bool, float]:
+    """The rank of a replay (lower is better; module docs): not successful first, then the mean
+    object pose error (``result``: :func:`~dexflow.sim.replay_criteria.sequence_result`'s
+    entry) plus ``tip_weight`` times ``tip_distance_m``, the simulated fingertips' mean distance
+    from the refined trajectory's."""
+    error = result["position_error_mean_m"]
+    error += s.rotation_weight_m_per_rad * result["rotation_error_mean_rad"]
+    return not result["success"], error + s.tip_weight * tip_distance_m
+
+
 def _replay_rank(
     world: ReplayWorld,
     targets: np.ndarray,
@@ -243,19 +259,17 @@ def _replay_rank(
     window: tuple[int, int, int],
     s: TrackParams,
     tips: np.ndarray | None,
-) -> tuple[tuple[bool, bool, float], dict]:
-    """The rank of a replay of ``targets`` (lower is better: by the replay's own criteria,
-    success, then carried, then the mean object pose error plus ``tip_weight`` times the
-    simulated fingertips' mean distance from ``tips (T, F, 3)``, the refined trajectory's, over
-    the window) and the replay's summary entry
+) -> tuple[tuple[bool, float], dict]:
+    """:func:`replay_rank` of a replay of ``targets`` (``tips (T, F, 3)``: the refined
+    trajectory's fingertips) and the replay's summary entry
     (:func:`~dexflow.sim.replay_criteria.sequence_result`)."""
     rows = world.replay(targets, poses, fps, window)
     r = sequence_result(rows, window[1], poses, fps, world.replay_params)
-    error = r["position_error_mean_m"] + s.rotation_weight_m_per_rad * r["rotation_error_mean_rad"]
+    distance = 0.0
     if s.tip_weight:
         frames = rows["frame"]
-        error += s.tip_weight * _tip_distance(world.hand, rows["hand_q"][None], tips[frames])[0]
-    return (not r["success"], not r["carried"], error), r
+        distance = _tip_distance(world.hand, rows["hand_q"][None], tips[frames])[0]
+    return replay_rank(r, distance, s), r
 
 
 def _per_finger(push: np.ndarray, hand) -> np.ndarray:
