@@ -19,6 +19,7 @@ import numpy as np
 
 from dexflow.pipeline import provenance
 from dexflow.stages.report import METHOD_LABELS, METRICS, cell, pyplot, save_figure
+from dexflow.tools.ablation import metric_label
 
 __all__ = ["Experiment", "collect_dvc", "collect_multirun", "swept_factors", "write_ablation"]
 
@@ -410,7 +411,7 @@ def _ablation_table(values: list[str], groups: dict, table: dict, shown: list[st
         for m in shown:
             text = cell(table[m][i], 3)
             finite = [x for x in table[m] if math.isfinite(x)]
-            higher = METRICS.get(m.split(".")[-1], ("", False))[1]
+            higher = metric_label(m)[2]
             distinct = len(finite) > 1 and max(finite) > min(finite)
             best = (max if higher else min)(finite) if distinct else None
             cells.append(f"**{text}**" if best is not None and table[m][i] == best else text)
