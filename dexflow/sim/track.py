@@ -56,7 +56,7 @@ steps, each scored in the physics:
    fingertip moves), and ``tip_weight`` times the mean distance (m) of the simulated hand's
    fingertips from the refined trajectory's (:func:`dexflow.measures.fingertips`: the
    keypoints the fingertip error measures). The search's result is kept only where its replay
-   ranks above the schedule's; else the schedule is the output.
+   ranks at least as high as the schedule's; else the schedule is the output.
 
 **Ranking** a replay (the grid's schedules, the search's result, :func:`replay_rank`): success
 first, then the mean object error (position plus ``rotation_weight_m_per_rad`` times rotation)
@@ -66,7 +66,7 @@ targets tracked the object best, wherever the hand went: pressed fingers that be
 object, a base dragged by it; the tracked hand's fingertips were 22 / 18 mm (Shadow / Allegro,
 28 real DexYCB captures) from the human's against the refined trajectory's 4.6 / 5.2. With
 ``tip_weight`` 20 (a centimetre of fingertip distance costs as much as 20 cm of object error,
-so among equals the fingertips decide) they are 10 / 9 mm and as many objects are carried.
+so among equals the fingertips decide) they are 9 / 9 mm, with as many successes.
 "Carried" (the replay's criterion that the object ends nearer its recording than left behind)
 is not a tier of its own: among failures it preferred a replay that drags the object along
 with fingers curled 5-6 cm from the human's over one that stays on the refined fingertips and
@@ -242,7 +242,7 @@ def _noise(
 
 
 def replay_rank(result: dict, tip_distance_m: float, s: TrackParams) -> tuple[bool, float]:
-    """The rank of a replay (lower is better; module docs): not successful first, then the mean
+    """The rank of a replay (lower is better; module docs): successes before failures, then the mean
     object pose error (``result``: :func:`~dexflow.sim.replay_criteria.sequence_result`'s
     entry) plus ``tip_weight`` times ``tip_distance_m``, the simulated fingertips' mean distance
     from the refined trajectory's."""
