@@ -334,12 +334,16 @@ def track_sequence(
         s.schedule_scales, s.schedule_ramps, s.schedule_leads, s.schedule_backoffs,
         s.schedule_holds,
     )  # fmt: skip
-    best_rank, guided, replayed = None, prior, {}
+    best_rank, best, replayed = None, prior, {}  # the output's ranking (replay_rank)
+    start_rank, guided = None, prior  # the search's start: carried before the error
     for schedule in grid:
         targets = guided_targets(prior, parts, poses, window, schedule, carried)
         rank, result = _replay_rank(world, targets, poses, fps, window, s, goal_tips)
+        start = (rank[0], not result["carried"], rank[1])
         if best_rank is None or rank < best_rank:  # the first of equals: deterministic
-            best_rank, guided, replayed = rank, targets, result
+            best_rank, best, replayed = rank, targets, result
+        if start_rank is None or start < start_rank:
+            start_rank, guided = start, targets
     if s.mpc:
         out = _search(
             world, prior, guided, parts[0], poses, fps, window, fingers, s, rng, clamp, goal_tips
@@ -347,7 +351,7 @@ def track_sequence(
         rank, result = _replay_rank(world, out["targets"], poses, fps, window, s, goal_tips)
         if rank <= best_rank:
             return {**out, "replayed": result}
-    return {**_play(world, prior, guided, poses, fps, window), "replayed": replayed}
+    return {**_play(world, prior, best, poses, fps, window), "replayed": replayed}
 
 
 def _play(
