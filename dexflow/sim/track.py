@@ -32,9 +32,10 @@ steps, each scored in the physics:
    (``carry_smooth_frames``; with 8, two more captures of 28 carried, with either hand, at
    1-4 mm more fingertip error): off by default (measured in docs/method.md). Every
    schedule of the grid ``schedule_scales x schedule_ramps x schedule_leads x
-   schedule_backoffs x schedule_holds`` is replayed whole; the best by the replay's own
-   criteria (:func:`replay_rank`: success, then the mean object error and the fingertips'
-   distance) is the search's starting point.
+   schedule_backoffs x schedule_holds`` is replayed whole. The search starts from the best by
+   success, then carried, then the error below (a schedule that carries the object is the
+   likeliest start to reach success); the best by :func:`replay_rank` (success, then the
+   error) is the fallback output.
 2. **Receding horizon** (``mpc``). At frame ``t`` of the replay window the simulation state is
    saved; candidate targets for frames ``t+1 .. t+horizon_frames`` are each rolled out from it
    (``substeps`` physics steps per frame, exactly as the replay steps); the cheapest becomes the
@@ -56,7 +57,7 @@ steps, each scored in the physics:
    fingertip moves), and ``tip_weight`` times the mean distance (m) of the simulated hand's
    fingertips from the refined trajectory's (:func:`dexflow.measures.fingertips`: the
    keypoints the fingertip error measures). The search's result is kept only where its replay
-   ranks at least as high as the schedule's; else the schedule is the output.
+   ranks at least as high as the fallback schedule's; else that schedule is the output.
 
 **Ranking** a replay (the grid's schedules, the search's result, :func:`replay_rank`): success
 first, then the mean object error (position plus ``rotation_weight_m_per_rad`` times rotation)
@@ -68,12 +69,13 @@ object, a base dragged by it; the tracked hand's fingertips were 22 / 18 mm (Sha
 ``tip_weight`` 20 (a centimetre of fingertip distance costs as much as 20 cm of object error,
 so among equals the fingertips decide) they are 9 / 9 mm, with as many successes.
 "Carried" (the replay's criterion that the object ends nearer its recording than left behind)
-is not a tier of its own: among failures it preferred a replay that drags the object along
-with fingers curled 5-6 cm from the human's over one that stays on the refined fingertips and
-drops it; neither is usable, and the second is the better record of the human's motion. As a
-tier it cost Shadow 1.2 mm of mean fingertip error on those captures (two failures at 36 and
-19 mm instead of 10 and 12), for two more objects carried and no more successes
-(docs/method.md has the measurements).
+ranks only the search's start (before the error: a schedule that carries the object is the
+likeliest start to reach success), not the output. Ranking the output, among failures it
+preferred a replay that drags the object along with fingers curled 5-6 cm from the human's
+over one that stays on the refined fingertips and drops it; neither is usable, and the second
+is the better record of the human's motion. There it cost Shadow 1.2 mm of mean fingertip
+error on those captures (two failures at 36 and 19 mm instead of 10 and 12), for two more
+objects carried and no more successes (docs/method.md has the measurements).
 
 What measured what, on the demo (Shadow, 24 sequences): the refined trajectory carries 8 %
 (success); one schedule 38 %; the grid of 48 alone 46 %; the grid and the receding horizon
